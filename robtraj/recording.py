@@ -1,0 +1,668 @@
+"""The `Recording` type and the one HDF5 reader/writer for schema version 1 (DESIGN section 4).
+
+Everything in SI: metres, radians, seconds. Quaternions are unit, in w, x, y, z order.
+LED positions are in the camera (tracker) frame with NaN where an LED was not seen.
+
+Raw data is never modified in place: `write_recording` refuses to overwrite an
+existing file unless asked to, and writes through a temporary file that is renamed
+into place only when complete. Groups, datasets and attributes the schema does not
+know survive a read–write round trip (`Recording.extras`, `Recording.extra_attrs`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from ._errors import UserError
+
+SCHEMA = "robtraj.recording"
+SCHEMA_VERSION = 1
+_QUAT_TOL = 1e-6
+_TRACKER_CHUNK_FRAMES = 1000
+
+
+class RecordingError(UserError):
+    """A recording file that does not follow schema version 1; the message names the dataset."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Pose:
+    """Rigid pose(s): `position` `(..., 3)` [m] and unit `quaternion_wxyz` `(..., 4)`."""
+
+    position: np.ndarray
+    quaternion_wxyz: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotLog:
+    """Robot controller log: `time` `(K,)` [s, robot clock], `joints` `(K, J)` [rad].
+
+    Kinematics as a named built-in `model` (e.g. ``"abb_irb2400_16"``) or a standard-DH
+    table `dh` `(J, 4)` with rows ``[d, a, alpha, theta_offset]`` [m, m, rad, rad].
+    """
+
+    time: np.ndarray
+    joints: np.ndarray
+    model: str | None = None
+    dh: np.ndarray | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Program:
+    """Commanded program: TCP `targets` (a `Pose` with `(P, ·)` arrays) in the base frame.
+
+    `motion` `(P,)` is ``"start"``, ``"linear"`` or ``"joint"``; `speed` `(P,)` [m/s] is the
+    commanded TCP speed to each target; `segment` `(N,)` optionally gives the program
+    segment index of each tracker frame.
+    """
+
+    targets: Pose
+    motion: np.ndarray
+    speed: np.ndarray
+    segment: np.ndarray | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Tool:
+    """The LED tool: nominal `constellation` `(M, 3)` [m] in the tool frame, per `led_ids`.
+
+    `normals` `(M, 3)` are unit LED emission axes in the tool frame (optional),
+    `reference_leds` `(3,)` the ids of the three reference LEDs, `flange_from_tool` the
+    nominal TCP (optional).
+    """
+
+    led_ids: np.ndarray
+    constellation: np.ndarray
+    normals: np.ndarray | None = None
+    reference_leds: np.ndarray | None = None
+    flange_from_tool: Pose | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Probe:
+    """Tool frame probed in the camera frame at static robot poses: `time` `(S,)`, `tool_pose`."""
+
+    time: np.ndarray
+    tool_pose: Pose
+
+
+@dataclasses.dataclass(frozen=True)
+class Truth:
+    """Simulation ground truth, never read by estimation code.
+
+    `tool_pose` `(N, ·)` is the true tool pose in the camera frame per tracker frame.
+    `effects` maps effect names to their hidden parameter values (JSON-able).
+    """
+
+    tool_pose: Pose
+    camera_from_base: Pose
+    flange_from_tool: Pose
+    constellation: np.ndarray
+    effects: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class Recording:
+    """One tracker recording (DESIGN section 4), all arrays NumPy, SI units.
+
+    `positions` `(N, M, 3)` are LED positions in the camera frame [m], NaN where unseen;
+    `time` `(N,)` the strictly increasing tracker clock [s]; `frame_index` `(N,)` the
+    unwrapped device frame counter (gaps are lost frames); `led_ids` `(M,)`.
+    """
+
+    time: np.ndarray
+    frame_index: np.ndarray
+    led_ids: np.ndarray
+    positions: np.ndarray
+    status: np.ndarray | None = None
+    temperature: np.ndarray | None = None
+    robot: RobotLog | None = None
+    program: Program | None = None
+    tool: Tool | None = None
+    probe: Probe | None = None
+    truth: Truth | None = None
+    attrs: dict[str, Any] = dataclasses.field(default_factory=dict)
+    extras: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    extra_attrs: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.time.shape[0])
+
+    @property
+    def n_leds(self) -> int:
+        return int(self.led_ids.shape[0])
+
+    @property
+    def visible(self) -> np.ndarray:
+        """`(N, M)` bool: LED seen in that frame (all three coordinates finite)."""
+        return np.all(np.isfinite(self.positions), axis=-1)
+
+    def replace(self, **changes: Any) -> Recording:
+        return dataclasses.replace(self, **changes)
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _create(group: h5py.Group, name: str, data: Any, *, time_chunked: bool = False) -> None:
+    data = np.asarray(data)
+    if data.dtype.kind == "U":
+        group.create_dataset(name, data=data.astype(object), dtype=h5py.string_dtype())
+        return
+    if time_chunked and data.ndim >= 1 and data.shape[0] > 0:
+        chunks = (min(_TRACKER_CHUNK_FRAMES, data.shape[0]), *data.shape[1:])
+        group.create_dataset(
+            name,
+            data=data,
+            chunks=chunks,
+            maxshape=(None, *data.shape[1:]),
+            compression="gzip",
+            compression_opts=1,
+            shuffle=True,
+        )
+    else:
+        group.create_dataset(name, data=data)
+
+
+def _write_pose(group: h5py.Group, name: str, pose: Pose, *, time_chunked: bool = False) -> None:
+    g = group.create_group(name)
+    _create(g, "position", np.asarray(pose.position, np.float64), time_chunked=time_chunked)
+    _create(
+        g, "quaternion_wxyz", np.asarray(pose.quaternion_wxyz, np.float64), time_chunked=time_chunked
+    )
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Mapping):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def write_recording(rec: Recording, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+    """Write `rec` to `path` as schema-1 HDF5; returns the path.
+
+    Refuses (`UserError`) to replace an existing file unless `overwrite`. The file is
+    written under a temporary name next to `path` and renamed into place when complete,
+    so a failure never leaves a half-written file under the final name.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise UserError(f"{path} exists; refusing to overwrite it (use --force or another name)")
+    _validate(rec, str(path))
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with h5py.File(tmp, "w") as f:
+            _write_into(f, rec)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def _write_into(f: h5py.File, rec: Recording) -> None:
+    attrs = {
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "source": "simulation",
+        **rec.attrs,
+    }
+    attrs["schema"] = SCHEMA
+    attrs["schema_version"] = SCHEMA_VERSION
+    for k, v in attrs.items():
+        f.attrs[k] = v
+
+    t = f.create_group("tracker")
+    _create(t, "time", np.asarray(rec.time, np.float64), time_chunked=True)
+    _create(t, "frame_index", np.asarray(rec.frame_index, np.uint64), time_chunked=True)
+    _create(t, "led_ids", np.asarray(rec.led_ids, np.int32))
+    _create(t, "positions", np.asarray(rec.positions, np.float64), time_chunked=True)
+    if rec.status is not None:
+        _create(t, "status", np.asarray(rec.status, np.uint8), time_chunked=True)
+    if rec.temperature is not None:
+        _create(t, "temperature", np.asarray(rec.temperature, np.float32), time_chunked=True)
+
+    if rec.robot is not None:
+        r = f.create_group("robot")
+        _create(r, "time", np.asarray(rec.robot.time, np.float64), time_chunked=True)
+        _create(r, "joints", np.asarray(rec.robot.joints, np.float64), time_chunked=True)
+        if rec.robot.model is not None:
+            r.attrs["model"] = rec.robot.model
+        if rec.robot.dh is not None:
+            _create(r, "dh", np.asarray(rec.robot.dh, np.float64))
+
+    if rec.program is not None:
+        p = f.create_group("program")
+        _write_pose(p, "targets", rec.program.targets)
+        _create(p, "motion", np.asarray(rec.program.motion, dtype=str))
+        _create(p, "speed", np.asarray(rec.program.speed, np.float64))
+        if rec.program.segment is not None:
+            _create(p, "segment", np.asarray(rec.program.segment, np.int32), time_chunked=True)
+
+    if rec.tool is not None:
+        g = f.create_group("tool")
+        _create(g, "led_ids", np.asarray(rec.tool.led_ids, np.int32))
+        _create(g, "constellation", np.asarray(rec.tool.constellation, np.float64))
+        if rec.tool.normals is not None:
+            _create(g, "normals", np.asarray(rec.tool.normals, np.float64))
+        if rec.tool.reference_leds is not None:
+            _create(g, "reference_leds", np.asarray(rec.tool.reference_leds, np.int32))
+        if rec.tool.flange_from_tool is not None:
+            _write_pose(g, "flange_from_tool", rec.tool.flange_from_tool)
+
+    if rec.probe is not None:
+        g = f.create_group("probe")
+        _create(g, "time", np.asarray(rec.probe.time, np.float64))
+        _write_pose(g, "tool_pose", rec.probe.tool_pose)
+
+    if rec.truth is not None:
+        g = f.create_group("truth")
+        _write_pose(g, "tool_pose", rec.truth.tool_pose, time_chunked=True)
+        _write_pose(g, "camera_from_base", rec.truth.camera_from_base)
+        _write_pose(g, "flange_from_tool", rec.truth.flange_from_tool)
+        _create(g, "constellation", np.asarray(rec.truth.constellation, np.float64))
+        g.attrs["effects"] = json.dumps(_jsonable(rec.truth.effects))
+
+    for name, data in rec.extras.items():
+        parent, _, leaf = name.rpartition("/")
+        group = f.require_group(parent) if parent else f
+        _create(group, leaf, data)
+    for name, extra in rec.extra_attrs.items():
+        obj = f[name] if name in f else f.require_group(name)
+        for k, v in extra.items():
+            obj.attrs[k] = v
+
+
+# ----------------------------------------------------------------------------- reading
+
+_KNOWN_ATTRS = {
+    "/": {"schema", "schema_version", "created", "source"},
+    "/robot": {"model"},
+    "/truth": {"effects"},
+}
+
+
+def read_recording(path: str | os.PathLike) -> Recording:
+    """Read and validate a schema-1 recording.
+
+    Raises `RecordingError` with a message naming the offending dataset for a wrong
+    `schema`, a newer `schema_version`, a missing required dataset, a shape mismatch,
+    non-increasing time or a non-unit quaternion; `UserError` if the file is missing
+    or not HDF5.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: no such file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise UserError(f"{path}: not a readable HDF5 file ({e})") from None
+    with f:
+        name = str(path)
+        schema = f.attrs.get("schema")
+        if isinstance(schema, bytes):
+            schema = schema.decode()
+        if schema != SCHEMA:
+            raise RecordingError(f"{name}: attribute /schema is {schema!r}, expected {SCHEMA!r}")
+        version = f.attrs.get("schema_version")
+        try:
+            version = int(version)
+        except (TypeError, ValueError):
+            raise RecordingError(f"{name}: attribute /schema_version is missing or not an integer")
+        if version > SCHEMA_VERSION:
+            raise RecordingError(
+                f"{name}: /schema_version is {version}, newer than this robtraj reads "
+                f"({SCHEMA_VERSION}); upgrade robtraj"
+            )
+        used: set[str] = set()
+        rec = _read_from(f, name, used)
+    _validate(rec, name)
+    return rec
+
+
+def _get(f: h5py.File, key: str, name: str, used: set[str], *, required: bool = True) -> Any:
+    if key not in f:
+        if required:
+            raise RecordingError(f"{name}: required dataset {key} is missing")
+        return None
+    obj = f[key]
+    if not isinstance(obj, h5py.Dataset):
+        raise RecordingError(f"{name}: {key} is a group, expected a dataset")
+    used.add(key)
+    data = obj[()]
+    if obj.dtype.kind == "O" or h5py.check_string_dtype(obj.dtype) is not None:
+        data = np.asarray([d.decode() if isinstance(d, bytes) else str(d) for d in np.ravel(data)])
+    return data
+
+
+def _get_pose(f: h5py.File, key: str, name: str, used: set[str], required: bool = True):
+    pos = _get(f, f"{key}/position", name, used, required=required)
+    quat = _get(f, f"{key}/quaternion_wxyz", name, used, required=required)
+    if pos is None or quat is None:
+        return None
+    return Pose(np.asarray(pos, np.float64), np.asarray(quat, np.float64))
+
+
+def _attr_str(obj: h5py.HLObject, key: str) -> str | None:
+    v = obj.attrs.get(key)
+    if v is None:
+        return None
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+def _read_from(f: h5py.File, name: str, used: set[str]) -> Recording:
+    g = lambda key, required=True: _get(f, key, name, used, required=required)  # noqa: E731
+    robot = None
+    if "robot" in f:
+        robot = RobotLog(
+            time=g("/robot/time"),
+            joints=g("/robot/joints"),
+            model=_attr_str(f["robot"], "model"),
+            dh=g("/robot/dh", False),
+        )
+    program = None
+    if "program" in f:
+        program = Program(
+            targets=_get_pose(f, "/program/targets", name, used),
+            motion=g("/program/motion"),
+            speed=g("/program/speed"),
+            segment=g("/program/segment", False),
+        )
+    tool = None
+    if "tool" in f:
+        tool = Tool(
+            led_ids=g("/tool/led_ids"),
+            constellation=g("/tool/constellation"),
+            normals=g("/tool/normals", False),
+            reference_leds=g("/tool/reference_leds", False),
+            flange_from_tool=_get_pose(f, "/tool/flange_from_tool", name, used, required=False),
+        )
+    probe = None
+    if "probe" in f:
+        probe = Probe(time=g("/probe/time"), tool_pose=_get_pose(f, "/probe/tool_pose", name, used))
+    truth = None
+    if "truth" in f:
+        effects_raw = _attr_str(f["truth"], "effects")
+        truth = Truth(
+            tool_pose=_get_pose(f, "/truth/tool_pose", name, used),
+            camera_from_base=_get_pose(f, "/truth/camera_from_base", name, used),
+            flange_from_tool=_get_pose(f, "/truth/flange_from_tool", name, used),
+            constellation=g("/truth/constellation"),
+            effects=json.loads(effects_raw) if effects_raw else {},
+        )
+    rec = Recording(
+        time=g("/tracker/time"),
+        frame_index=g("/tracker/frame_index"),
+        led_ids=g("/tracker/led_ids"),
+        positions=g("/tracker/positions"),
+        status=g("/tracker/status", False),
+        temperature=g("/tracker/temperature", False),
+        robot=robot,
+        program=program,
+        tool=tool,
+        probe=probe,
+        truth=truth,
+        attrs={k: _plain_attr(v) for k, v in f.attrs.items() if k in _KNOWN_ATTRS["/"]},
+    )
+    extras: dict[str, np.ndarray] = {}
+    extra_attrs: dict[str, dict[str, Any]] = {}
+
+    def visit(key: str, obj: h5py.HLObject) -> None:
+        full = "/" + key
+        if isinstance(obj, h5py.Dataset) and full not in used:
+            extras[key] = obj[()]
+        known = _KNOWN_ATTRS.get(full, set())
+        rest = {k: _plain_attr(v) for k, v in obj.attrs.items() if k not in known}
+        is_unknown_group = isinstance(obj, h5py.Group) and not _is_schema_group(full)
+        if rest or (is_unknown_group and len(obj) == 0):
+            extra_attrs[key] = rest
+
+    f.visititems(visit)
+    root_rest = {k: _plain_attr(v) for k, v in f.attrs.items() if k not in _KNOWN_ATTRS["/"]}
+    return rec.replace(attrs={**rec.attrs, **root_rest}, extras=extras, extra_attrs=extra_attrs)
+
+
+_SCHEMA_GROUPS = {
+    "/tracker",
+    "/robot",
+    "/program",
+    "/program/targets",
+    "/tool",
+    "/tool/flange_from_tool",
+    "/probe",
+    "/probe/tool_pose",
+    "/truth",
+    "/truth/tool_pose",
+    "/truth/camera_from_base",
+    "/truth/flange_from_tool",
+}
+
+
+def _is_schema_group(full: str) -> bool:
+    return full in _SCHEMA_GROUPS
+
+
+def _plain_attr(v: Any) -> Any:
+    if isinstance(v, bytes):
+        return v.decode()
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _check_shape(name: str, key: str, arr: np.ndarray, shape: tuple) -> None:
+    arr = np.asarray(arr)
+    ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
+    if not ok:
+        want = "(" + ", ".join("·" if s is None else str(s) for s in shape) + ")"
+        raise RecordingError(f"{name}: {key} has shape {arr.shape}, expected {want}")
+
+
+def _check_increasing(name: str, key: str, t: np.ndarray) -> None:
+    t = np.asarray(t, np.float64)
+    if not np.all(np.isfinite(t)):
+        raise RecordingError(f"{name}: {key} contains NaN or infinite values")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        raise RecordingError(
+            f"{name}: {key} is not strictly increasing (index {bad[0] + 1}: "
+            f"{t[bad[0]]!r} then {t[bad[0] + 1]!r})"
+        )
+
+
+def _check_pose(name: str, key: str, pose: Pose, lead: tuple) -> None:
+    _check_shape(name, f"{key}/position", pose.position, (*lead, 3))
+    _check_shape(name, f"{key}/quaternion_wxyz", pose.quaternion_wxyz, (*lead, 4))
+    q = np.asarray(pose.quaternion_wxyz, np.float64)
+    norm = np.linalg.norm(q, axis=-1)
+    finite = np.isfinite(norm)  # NaN poses (e.g. unseen frames) are allowed
+    bad = np.flatnonzero(finite.ravel() & (np.abs(norm.ravel() - 1.0) > _QUAT_TOL))
+    if bad.size:
+        raise RecordingError(
+            f"{name}: {key}/quaternion_wxyz is not unit (norm {norm.ravel()[bad[0]]:.9g} "
+            f"at index {bad[0]})"
+        )
+
+
+def _validate(rec: Recording, name: str) -> None:
+    n = rec.time.shape[0] if np.ndim(rec.time) == 1 else None
+    _check_shape(name, "/tracker/time", rec.time, (None,))
+    m = np.shape(rec.led_ids)[0] if np.ndim(rec.led_ids) == 1 else None
+    _check_shape(name, "/tracker/led_ids", rec.led_ids, (None,))
+    _check_shape(name, "/tracker/frame_index", rec.frame_index, (n,))
+    _check_shape(name, "/tracker/positions", rec.positions, (n, m, 3))
+    if n:
+        _check_increasing(name, "/tracker/time", rec.time)
+    if rec.status is not None:
+        _check_shape(name, "/tracker/status", rec.status, (n, m))
+    if rec.temperature is not None:
+        _check_shape(name, "/tracker/temperature", rec.temperature, (n,))
+    if rec.robot is not None:
+        _check_shape(name, "/robot/time", rec.robot.time, (None,))
+        k = rec.robot.time.shape[0]
+        _check_shape(name, "/robot/joints", rec.robot.joints, (k, None))
+        if k:
+            _check_increasing(name, "/robot/time", rec.robot.time)
+        if rec.robot.dh is not None:
+            _check_shape(name, "/robot/dh", rec.robot.dh, (rec.robot.joints.shape[1], 4))
+    if rec.program is not None:
+        p = np.shape(rec.program.targets.position)[0]
+        _check_pose(name, "/program/targets", rec.program.targets, (p,))
+        _check_shape(name, "/program/motion", rec.program.motion, (p,))
+        _check_shape(name, "/program/speed", rec.program.speed, (p,))
+        if rec.program.segment is not None:
+            _check_shape(name, "/program/segment", rec.program.segment, (n,))
+    if rec.tool is not None:
+        mt = np.shape(rec.tool.led_ids)[0]
+        _check_shape(name, "/tool/constellation", rec.tool.constellation, (mt, 3))
+        if rec.tool.normals is not None:
+            _check_shape(name, "/tool/normals", rec.tool.normals, (mt, 3))
+        if rec.tool.reference_leds is not None:
+            _check_shape(name, "/tool/reference_leds", rec.tool.reference_leds, (3,))
+        if rec.tool.flange_from_tool is not None:
+            _check_pose(name, "/tool/flange_from_tool", rec.tool.flange_from_tool, ())
+    if rec.probe is not None:
+        s = np.shape(rec.probe.time)[0]
+        _check_shape(name, "/probe/time", rec.probe.time, (s,))
+        if s:
+            _check_increasing(name, "/probe/time", rec.probe.time)
+        _check_pose(name, "/probe/tool_pose", rec.probe.tool_pose, (s,))
+    if rec.truth is not None:
+        _check_pose(name, "/truth/tool_pose", rec.truth.tool_pose, (n,))
+        _check_pose(name, "/truth/camera_from_base", rec.truth.camera_from_base, ())
+        _check_pose(name, "/truth/flange_from_tool", rec.truth.flange_from_tool, ())
+        _check_shape(name, "/truth/constellation", rec.truth.constellation, (None, 3))
+
+
+# ----------------------------------------------------------------------------- appending
+
+
+class RecordingAppender:
+    """Write a schema-1 recording frame by frame, as a recorder does.
+
+    The tracker datasets are chunked along time and resizable; `flush()` makes what was
+    appended so far durable. The file is opened in SWMR mode (HDF5 ``libver="latest"``)
+    so that a crash or ``kill -9`` leaves a file readable up to the last flush.
+
+    **Arguments:**
+
+    - `path`: the new file; refused if it exists unless `overwrite`.
+    - `led_ids`: `(M,)` LED identifiers (the LED axis of `/tracker/positions`).
+    - `attrs`: extra root attributes (``source`` defaults to ``"device"``).
+    - `with_status`, `with_temperature`: create the optional tracker datasets.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        led_ids: np.ndarray,
+        *,
+        attrs: Mapping[str, Any] | None = None,
+        with_status: bool = True,
+        with_temperature: bool = True,
+        overwrite: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise UserError(f"{self.path} exists; refusing to overwrite it (use --force)")
+        self.led_ids = np.asarray(led_ids, np.int32)
+        m = self.led_ids.shape[0]
+        self._f = h5py.File(self.path, "w", libver="latest")
+        f = self._f
+        root = {
+            "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "source": "device",
+            **(attrs or {}),
+            "schema": SCHEMA,
+            "schema_version": SCHEMA_VERSION,
+        }
+        for k, v in root.items():
+            f.attrs[k] = v
+        t = f.create_group("tracker")
+        c = _TRACKER_CHUNK_FRAMES
+        t.create_dataset("led_ids", data=self.led_ids)
+        self._ds = {
+            "time": t.create_dataset("time", (0,), "f8", maxshape=(None,), chunks=(c,)),
+            "frame_index": t.create_dataset(
+                "frame_index", (0,), "u8", maxshape=(None,), chunks=(c,)
+            ),
+            "positions": t.create_dataset(
+                "positions",
+                (0, m, 3),
+                "f8",
+                maxshape=(None, m, 3),
+                chunks=(c, m, 3),
+                compression="gzip",
+                compression_opts=1,
+                shuffle=True,
+            ),
+        }
+        if with_status:
+            self._ds["status"] = t.create_dataset(
+                "status", (0, m), "u1", maxshape=(None, m), chunks=(c, m), compression="gzip"
+            )
+        if with_temperature:
+            self._ds["temperature"] = t.create_dataset(
+                "temperature", (0,), "f4", maxshape=(None,), chunks=(c,)
+            )
+        f.swmr_mode = True
+        self.n_frames = 0
+
+    def append(
+        self,
+        time: np.ndarray,
+        frame_index: np.ndarray,
+        positions: np.ndarray,
+        status: np.ndarray | None = None,
+        temperature: np.ndarray | None = None,
+    ) -> None:
+        """Append `(k,)` times, `(k,)` frame indices, `(k, M, 3)` positions [m] (NaN unseen)."""
+        k = int(np.shape(time)[0])
+        if k == 0:
+            return
+        n0, n1 = self.n_frames, self.n_frames + k
+        values = {"time": time, "frame_index": frame_index, "positions": positions}
+        if "status" in self._ds:
+            values["status"] = (
+                status if status is not None else np.where(np.isnan(positions[..., 0]), 1, 0)
+            )
+        if "temperature" in self._ds:
+            values["temperature"] = (
+                temperature if temperature is not None else np.full(k, np.nan, np.float32)
+            )
+        for key, ds in self._ds.items():
+            ds.resize(n1, axis=0)
+            ds[n0:n1] = values[key]
+        self.n_frames = n1
+
+    def flush(self) -> None:
+        self._f.flush()
+
+    def close(self) -> None:
+        if self._f.id.valid:
+            self._f.flush()
+            self._f.close()
+
+    def __enter__(self) -> RecordingAppender:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
