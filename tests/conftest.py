@@ -1,4 +1,4 @@
-"""Strict numerics for the whole suite (STYLE L9): float64 and no silent rank promotion."""
+"""Suite-wide settings: float64 JAX and a non-interactive matplotlib backend."""
 
 import os
 
@@ -7,4 +7,3 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
-jax.config.update("jax_numpy_rank_promotion", "raise")

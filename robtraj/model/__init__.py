@@ -1,0 +1,58 @@
+"""The forward measurement model, pure JAX and differentiable (DESIGN sections 5 and 7).
+
+One model, used by the simulator to generate and by the estimators to fit: robot
+kinematics (standard DH), the LED tool, the camera (volume, visibility, noise) and
+the effect library.
+"""
+
+from ._camera import CameraModel, emission_angle, in_volume, noise_sigma
+from ._effects import BIAS_REFERENCE_ANGLE, EFFECT_NAMES, Effects, parse_effect
+from ._kinematics import (
+    BUILTIN_ROBOTS,
+    RobotModel,
+    abb_irb2400_16,
+    forward_kinematics,
+    gravity_torque,
+    inverse_kinematics,
+    joint_frames,
+    robot_from_log,
+    ur10,
+)
+from ._measurement import (
+    camera_from_base_at,
+    effective_joints,
+    flange_poses,
+    interpolate_joints,
+    led_positions,
+    motion_direction,
+    predict_tool_poses,
+)
+from ._tool import hemispherical_tool
+
+__all__ = [
+    "BIAS_REFERENCE_ANGLE",
+    "BUILTIN_ROBOTS",
+    "CameraModel",
+    "EFFECT_NAMES",
+    "Effects",
+    "RobotModel",
+    "abb_irb2400_16",
+    "camera_from_base_at",
+    "effective_joints",
+    "emission_angle",
+    "flange_poses",
+    "forward_kinematics",
+    "gravity_torque",
+    "hemispherical_tool",
+    "in_volume",
+    "interpolate_joints",
+    "inverse_kinematics",
+    "joint_frames",
+    "led_positions",
+    "motion_direction",
+    "noise_sigma",
+    "parse_effect",
+    "predict_tool_poses",
+    "robot_from_log",
+    "ur10",
+]

@@ -1,0 +1,114 @@
+"""The effect library of DESIGN section 7: what the nominal model leaves out.
+
+Every effect is a field of one `Effects` module; all zeros is the nominal model. The
+simulator generates with it and the estimators fit it, through the one forward model
+in `_measurement.py`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._errors import UserError
+
+#: emission angle [rad] at which `led_angle_bias` is quoted
+BIAS_REFERENCE_ANGLE = float(np.deg2rad(60.0))
+
+
+class Effects(eqx.Module):
+    """Physical effects, each zero in the nominal model (SI units).
+
+    - `time_offset` [s]: robot clock minus tracker clock (τ); the tracker frame at
+      tracker time t sees the robot at robot time t + τ.
+    - `joint_offset` `(joints,)` [rad]: zero-position error added to each joint.
+    - `link_length` `(joints, 2)` [m]: errors of the DH lengths ``[Δd, Δa]``.
+    - `joint_compliance` `(joints,)` [rad/(N·m)]: deflection = compliance · gravity torque.
+    - `backlash` `(joints,)` [rad]: offset of sign equal to the joint's direction of
+      motion (the last direction is held while the joint stands still).
+    - `led_angle_bias` [m]: LED position bias along its emission axis, quoted at an
+      emission angle of 60°, growing as ``(1 − cos θ)/(1 − cos 60°)``.
+    - `tracker_scale` [1]: the tracker measures ``(1 + s)`` times the true coordinates.
+    - `thermal_drift` `(3,)` [m/K]: translation of camera←base per kelvin of camera
+      temperature change since the first frame (per minute of time when the recording
+      has no temperature).
+    """
+
+    time_offset: Float[Array, ""]
+    joint_offset: Float[Array, " joints"]
+    link_length: Float[Array, "joints 2"]
+    joint_compliance: Float[Array, " joints"]
+    backlash: Float[Array, " joints"]
+    led_angle_bias: Float[Array, ""]
+    tracker_scale: Float[Array, ""]
+    thermal_drift: Float[Array, "3"]
+
+    @classmethod
+    def zeros(cls, n_joints: int = 6) -> Effects:
+        z = jnp.zeros(n_joints)
+        return cls(
+            time_offset=jnp.zeros(()),
+            joint_offset=z,
+            link_length=jnp.zeros((n_joints, 2)),
+            joint_compliance=z,
+            backlash=z,
+            led_angle_bias=jnp.zeros(()),
+            tracker_scale=jnp.zeros(()),
+            thermal_drift=jnp.zeros(3),
+        )
+
+    def to_dict(self) -> dict[str, float | list]:
+        """Non-zero effects as plain JSON-able values."""
+        out = {}
+        for f in dataclasses.fields(self):
+            v = np.asarray(getattr(self, f.name))
+            if np.any(v != 0):
+                out[f.name] = v.tolist()
+        return out
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+    @classmethod
+    def from_dict(cls, values: dict, n_joints: int = 6) -> Effects:
+        eff = cls.zeros(n_joints)
+        for name, v in values.items():
+            eff = eff.with_value(name, v)
+        return eff
+
+    def with_value(self, name: str, value) -> Effects:
+        """A copy with effect `name` set; a scalar for a per-joint effect fills all joints."""
+        names = [f.name for f in dataclasses.fields(self)]
+        if name not in names:
+            raise UserError(f"unknown effect {name!r} (known: {', '.join(names)})")
+        old = getattr(self, name)
+        new = jnp.broadcast_to(jnp.asarray(value, jnp.float64), old.shape)
+        return eqx.tree_at(lambda e: getattr(e, name), self, new)
+
+
+EFFECT_NAMES = tuple(f.name for f in dataclasses.fields(Effects))
+
+
+def parse_effect(spec: str, n_joints: int = 6) -> tuple[str, np.ndarray]:
+    """Parse ``NAME=VALUE`` (VALUE a number or comma-separated list) for `--effect`."""
+    name, sep, value = spec.partition("=")
+    name = name.strip()
+    if not sep or name not in EFFECT_NAMES:
+        raise UserError(
+            f"bad --effect {spec!r}: expected NAME=VALUE with NAME one of {', '.join(EFFECT_NAMES)}"
+        )
+    try:
+        values = np.array([float(v) for v in value.split(",")])
+    except ValueError:
+        raise UserError(f"bad --effect {spec!r}: VALUE must be a number or comma-separated numbers")
+    shape = np.shape(getattr(Effects.zeros(n_joints), name))
+    try:
+        values = np.broadcast_to(values if values.size > 1 else values[0], shape)
+    except ValueError:
+        raise UserError(f"bad --effect {spec!r}: {name} takes 1 or {int(np.prod(shape))} values")
+    return name, np.array(values)

@@ -1,0 +1,175 @@
+"""Standard-DH forward kinematics, built-in robots and numerical inverse kinematics.
+
+Frames: `base` (robot base, z up), `flange` (tool0). A DH row is
+``[d, a, alpha, theta_offset]`` [m, m, rad, rad] and the link transform is
+``Rz(q + theta_offset) · Tz(d) · Tx(a) · Rx(alpha)`` (standard/distal DH).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._errors import UserError
+
+_PI = np.pi
+
+
+class RobotModel(eqx.Module):
+    """A serial robot: DH table, flange offset and a link-mass model for gravity torques.
+
+    - `dh`: `(joints, 4)` rows ``[d, a, alpha, theta_offset]`` [m, m, rad, rad].
+    - `last_from_flange`: `(7,)` jaxlie ``wxyz_xyz`` of the flange (tool0) in the last
+      DH frame.
+    - `link_mass`: `(joints,)` [kg], mass of link i, lumped at the midpoint between the
+      origins of DH frames i-1 and i; `payload_mass` [kg] lumped at the flange.
+    """
+
+    dh: Float[Array, "joints 4"]
+    last_from_flange: Float[Array, "7"]
+    link_mass: Float[Array, " joints"]
+    payload_mass: Float[Array, ""]
+    name: str = eqx.field(static=True, default="custom")
+
+    @property
+    def n_joints(self) -> int:
+        return self.dh.shape[0]
+
+
+def _robot(name, dh, flange_rz, masses, payload) -> RobotModel:
+    last_from_flange = jaxlie.SE3.from_rotation(jaxlie.SO3.from_z_radians(flange_rz))
+    return RobotModel(
+        dh=jnp.asarray(dh, jnp.float64),
+        last_from_flange=last_from_flange.wxyz_xyz.astype(jnp.float64),
+        link_mass=jnp.asarray(masses, jnp.float64),
+        payload_mass=jnp.asarray(payload, jnp.float64),
+        name=name,
+    )
+
+
+def abb_irb2400_16() -> RobotModel:
+    """ABB IRB2400-16 (ROS-Industrial DH; tool0 = last DH frame turned by π about z)."""
+    dh = [
+        [0.615, 0.100, -_PI / 2, 0.0],
+        [0.0, 0.705, 0.0, -_PI / 2],
+        [0.0, 0.135, -_PI / 2, 0.0],
+        [0.755, 0.0, _PI / 2, 0.0],
+        [0.0, 0.0, -_PI / 2, 0.0],
+        [0.085, 0.0, 0.0, 0.0],
+    ]
+    return _robot("abb_irb2400_16", dh, _PI, [90.0, 45.0, 35.0, 12.0, 6.0, 1.0], 2.5)
+
+
+def ur10() -> RobotModel:
+    """Universal Robots UR10 (manufacturer's published standard-DH parameters)."""
+    dh = [
+        [0.1273, 0.0, _PI / 2, 0.0],
+        [0.0, -0.612, 0.0, 0.0],
+        [0.0, -0.5723, 0.0, 0.0],
+        [0.163941, 0.0, _PI / 2, 0.0],
+        [0.1157, 0.0, -_PI / 2, 0.0],
+        [0.0922, 0.0, 0.0, 0.0],
+    ]
+    return _robot("ur10", dh, 0.0, [7.1, 12.7, 4.3, 2.0, 2.0, 0.4], 1.0)
+
+
+BUILTIN_ROBOTS = {"abb_irb2400_16": abb_irb2400_16, "ur10": ur10}
+
+
+def robot_from_log(model: str | None, dh: np.ndarray | None) -> RobotModel:
+    """The robot of a recording: a `/robot/dh` table if present, else the named built-in."""
+    if dh is not None:
+        j = np.asarray(dh).shape[0]
+        return _robot("custom", dh, 0.0, np.full(j, 5.0), 1.0)
+    if model is None:
+        raise UserError("the recording names no robot model and has no /robot/dh table")
+    if model not in BUILTIN_ROBOTS:
+        raise UserError(
+            f"unknown robot model {model!r} (built in: {', '.join(sorted(BUILTIN_ROBOTS))}); "
+            "store a /robot/dh table instead"
+        )
+    return BUILTIN_ROBOTS[model]()
+
+
+def _dh_matrix(d, a, alpha, theta):
+    ct, st, ca, sa = jnp.cos(theta), jnp.sin(theta), jnp.cos(alpha), jnp.sin(alpha)
+    z, o = jnp.zeros_like(theta), jnp.ones_like(theta)
+    return jnp.stack(
+        [
+            jnp.stack([ct, -st * ca, st * sa, a * ct]),
+            jnp.stack([st, ct * ca, -ct * sa, a * st]),
+            jnp.stack([z, sa, ca, d]),
+            jnp.stack([z, z, z, o]),
+        ]
+    )
+
+
+def joint_frames(dh: Float[Array, "joints 4"], q: Float[Array, " joints"]) -> Float[Array, "n 4 4"]:
+    """Homogeneous transforms base←frame_i for i = 0 … joints (frame 0 is the base)."""
+
+    def step(t, row_q):
+        row, qi = row_q
+        t = t @ _dh_matrix(row[0], row[1], row[2], qi + row[3])
+        return t, t
+
+    eye = jnp.eye(4, dtype=q.dtype)
+    _, frames = jax.lax.scan(step, eye, (dh.astype(q.dtype), q))
+    return jnp.concatenate([eye[None], frames], axis=0)
+
+
+def forward_kinematics(
+    robot: RobotModel, q: Float[Array, " joints"], dh_delta: Float[Array, "joints 4"] | None = None
+) -> jaxlie.SE3:
+    """Flange (tool0) pose in the base frame for one joint vector `q` [rad].
+
+    `dh_delta` is added to the DH table (link-length and offset corrections).
+    """
+    dh = robot.dh if dh_delta is None else robot.dh + dh_delta
+    base_from_last = joint_frames(dh, q)[-1]
+    return jaxlie.SE3.from_matrix(base_from_last) @ jaxlie.SE3(robot.last_from_flange)
+
+
+def gravity_torque(
+    robot: RobotModel, q: Float[Array, " joints"], g: float = 9.81
+) -> Float[Array, " joints"]:
+    """Joint torques [N·m] that gravity (−z of the base) exerts, from the link-mass model.
+
+    τ = −∂V/∂q with V the potential energy of the lumped link masses and the payload.
+    """
+
+    def potential(q):
+        origins = joint_frames(robot.dh, q)[:, :3, 3]
+        com = 0.5 * (origins[:-1] + origins[1:])
+        flange_z = forward_kinematics(robot, q).translation()[2]
+        return g * (jnp.sum(robot.link_mass * com[:, 2]) + robot.payload_mass * flange_z)
+
+    return -jax.grad(potential)(q)
+
+
+def inverse_kinematics(
+    robot: RobotModel,
+    base_from_flange: jaxlie.SE3,
+    q0: Float[Array, " joints"],
+    iterations: int = 60,
+    damping: float = 1e-10,
+) -> Float[Array, " joints"]:
+    """Joint vector reaching `base_from_flange` by damped Gauss–Newton from seed `q0`."""
+
+    def err(q):
+        return (base_from_flange.inverse() @ forward_kinematics(robot, q)).log()
+
+    def body(q, _):
+        e = err(q)
+        jac = jax.jacfwd(err)(q)
+        h = jac.T @ jac + damping * jnp.eye(q.shape[0], dtype=q.dtype)
+        step = jnp.linalg.solve(h, jac.T @ e)
+        # limit the step so far seeds do not jump to another branch
+        scale = jnp.minimum(1.0, 0.5 / (jnp.max(jnp.abs(step)) + 1e-30))
+        return q - scale * step, None
+
+    q, _ = jax.lax.scan(body, q0, None, length=iterations)
+    return q

@@ -1,0 +1,17 @@
+"""The simulator: scenarios, robot motion, effects, visibility and noise → Recording."""
+
+from ._motion import Move, trapezoid_duration, trapezoid_progress
+from ._scenarios import DEFAULT_DURATION, ISO_CUBE_CENTRE, ISO_CUBE_SIDE, SCENARIOS, iso_cube_poses
+from ._simulate import simulate
+
+__all__ = [
+    "DEFAULT_DURATION",
+    "ISO_CUBE_CENTRE",
+    "ISO_CUBE_SIDE",
+    "Move",
+    "SCENARIOS",
+    "iso_cube_poses",
+    "simulate",
+    "trapezoid_duration",
+    "trapezoid_progress",
+]

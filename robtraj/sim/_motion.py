@@ -1,0 +1,190 @@
+"""Robot motion from a program: trapezoidal speed profiles, linear and joint moves, IK.
+
+All times here are on the robot clock [s]; poses in the base frame [m].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from .._errors import UserError
+from ..model import RobotModel, forward_kinematics, inverse_kinematics
+
+LINEAR_ACCELERATION = 1.5  # [m/s²]
+ANGULAR_SPEED = 0.6  # [rad/s] TCP reorientation speed limit of linear moves
+ANGULAR_ACCELERATION = 2.0  # [rad/s²]
+JOINT_SPEED = 0.8  # [rad/s] of the fastest joint in joint moves
+JOINT_ACCELERATION = 3.0  # [rad/s²]
+
+
+@dataclasses.dataclass(frozen=True)
+class Move:
+    """One program step: reach `position`/`quaternion_wxyz` (TCP in base) then dwell."""
+
+    position: np.ndarray
+    quaternion_wxyz: np.ndarray
+    motion: str  # "start", "linear" or "joint"
+    speed: float  # [m/s]
+    dwell: float  # [s] standing still after arriving
+
+
+def trapezoid_duration(distance: float, speed: float, acceleration: float) -> float:
+    """Time [s] to cover `distance` from rest to rest with a trapezoidal speed profile."""
+    if distance <= 0:
+        return 0.0
+    if distance < speed**2 / acceleration:
+        return 2.0 * np.sqrt(distance / acceleration)
+    return distance / speed + speed / acceleration
+
+
+def trapezoid_progress(t: np.ndarray, duration: float, accel_time: float) -> np.ndarray:
+    """Normalised progress s(t) ∈ [0, 1] of a rest-to-rest trapezoidal profile."""
+    ta = min(accel_time, duration / 2)
+    vmax = 1.0 / (duration - ta)
+    t = np.clip(t, 0.0, duration)
+    return np.where(
+        t < ta,
+        0.5 * vmax / ta * t**2,
+        np.where(
+            t <= duration - ta,
+            0.5 * vmax * ta + vmax * (t - ta),
+            1.0 - 0.5 * vmax / ta * (duration - t) ** 2,
+        ),
+    )
+
+
+def _rest_to_rest(distance: float, speed: float, acceleration: float) -> tuple[float, float]:
+    d = trapezoid_duration(distance, speed, acceleration)
+    return d, min(speed / acceleration, d / 2)
+
+
+@jax.jit
+def _ik_track(robot, poses, q_direct, use_direct, q0):
+    def step(q_prev, x):
+        pose, qd, direct = x
+        q = jax.lax.cond(
+            direct,
+            lambda: qd,
+            lambda: inverse_kinematics(robot, jaxlie.SE3(pose), q_prev, iterations=4),
+        )
+        return q, q
+
+    return jax.lax.scan(step, q0, (poses, q_direct, use_direct))[1]
+
+
+@jax.jit
+def _fk_batch(robot, q):
+    return jax.vmap(lambda qq: forward_kinematics(robot, qq).wxyz_xyz)(q)
+
+
+@jax.jit
+def _ik_solve(robot, base_from_flange, seed):
+    q = inverse_kinematics(robot, base_from_flange, seed, iterations=80)
+    return q, (base_from_flange.inverse() @ forward_kinematics(robot, q)).log()
+
+
+def _ik_point(robot, base_from_flange: jaxlie.SE3, seed: np.ndarray) -> np.ndarray:
+    q, err = _ik_solve(robot, base_from_flange, jnp.asarray(seed))
+    if not np.all(np.isfinite(q)) or float(jnp.max(jnp.abs(err))) > 1e-9:
+        p = np.round(np.asarray(base_from_flange.translation()), 3)
+        raise UserError(f"program target at {p.tolist()} m is out of the robot's reach")
+    return np.asarray(q)
+
+
+def joint_log(
+    robot: RobotModel,
+    moves: list[Move],
+    flange_from_tool: jaxlie.SE3,
+    q_seed: np.ndarray,
+    times: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Joint angles the controller commands at robot-clock `times` for a program.
+
+    Returns ``(joints (K, J), departure (P,), arrival (P,))``: robot times at which the
+    move to each target starts and ends (the first target: −inf and 0; the robot holds
+    the first pose before time 0 and the last pose after the end). The program segment
+    of a time t is the last target whose move has started.
+    """
+    tool_from_flange = flange_from_tool.inverse()
+    tff_rot = Rotation.from_quat(np.asarray(tool_from_flange.rotation().wxyz), scalar_first=True)
+    tff_pos = np.array(tool_from_flange.translation())
+
+    def flange_target(m: Move) -> jaxlie.SE3:
+        tcp = jaxlie.SE3.from_rotation_and_translation(
+            jaxlie.SO3(jnp.asarray(m.quaternion_wxyz)), jnp.asarray(m.position)
+        )
+        return tcp @ tool_from_flange
+
+    q_targets = [_ik_point(robot, flange_target(moves[0]), q_seed)]
+    starts, durations, accel = [], [], []
+    t = moves[0].dwell
+    arrival = [0.0]
+    for i in range(1, len(moves)):
+        a, b = moves[i - 1], moves[i]
+        q_targets.append(_ik_point(robot, flange_target(b), q_targets[-1]))
+        if b.motion == "joint":
+            dq = float(np.max(np.abs(q_targets[-1] - q_targets[-2])))
+            d, ta = _rest_to_rest(dq, JOINT_SPEED, JOINT_ACCELERATION)
+        else:
+            dist = float(np.linalg.norm(b.position - a.position))
+            ang = (
+                Rotation.from_quat(a.quaternion_wxyz, scalar_first=True).inv()
+                * Rotation.from_quat(b.quaternion_wxyz, scalar_first=True)
+            ).magnitude()
+            d1, ta1 = _rest_to_rest(dist, b.speed, LINEAR_ACCELERATION)
+            d2, ta2 = _rest_to_rest(float(ang), ANGULAR_SPEED, ANGULAR_ACCELERATION)
+            d, ta = (d1, ta1) if d1 >= d2 else (d2, ta2)
+        d = max(d, 1e-3)
+        starts.append(t)
+        durations.append(d)
+        accel.append(ta)
+        t += d
+        arrival.append(t)
+        t += b.dwell
+
+    k = len(times)
+    n_j = robot.n_joints
+    poses = np.zeros((k, 7))
+    poses[:, 0] = 1.0
+    q_direct = np.zeros((k, n_j))
+    use_direct = np.ones(k, bool)
+    q_direct[:] = q_targets[0]
+    for i in range(1, len(moves)):
+        s0, d = starts[i - 1], durations[i - 1]
+        moving = (times > s0) & (times <= s0 + d)
+        q_direct[times > s0 + d] = q_targets[i]
+        s = trapezoid_progress(times[moving] - s0, d, accel[i - 1])
+        a, b = moves[i - 1], moves[i]
+        if b.motion == "joint":
+            q_direct[moving] = q_targets[i - 1] + s[:, None] * (q_targets[i] - q_targets[i - 1])
+            continue
+        pos = a.position + s[:, None] * (b.position - a.position)
+        ends = np.stack([a.quaternion_wxyz, b.quaternion_wxyz])
+        rots = Slerp([0.0, 1.0], Rotation.from_quat(ends, scalar_first=True))(s)
+        flange_rot = rots * tff_rot
+        poses[moving, :4] = flange_rot.as_quat(scalar_first=True)
+        poses[moving, 4:] = pos + rots.apply(tff_pos)
+        use_direct[moving] = False
+    q = np.asarray(
+        _ik_track(
+            robot,
+            jnp.asarray(poses),
+            jnp.asarray(q_direct),
+            jnp.asarray(use_direct),
+            jnp.asarray(q_targets[0]),
+        )
+    )
+    check = ~use_direct
+    if np.any(check):
+        got = np.asarray(_fk_batch(robot, jnp.asarray(q[check])))
+        pos_err = np.max(np.abs(got[:, 4:] - poses[check][:, 4:]))
+        jump = np.max(np.abs(np.diff(q, axis=0)))
+        if not np.isfinite(pos_err) or pos_err > 1e-7 or jump > 0.1:
+            raise UserError("a linear move leaves the robot's reach or passes a singularity")
+    return q, np.array([-np.inf, *starts]), np.asarray(arrival)
