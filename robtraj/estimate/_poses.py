@@ -1,0 +1,272 @@
+"""Recording → per-frame tool poses with per-frame quality (DESIGN 5.3)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._errors import UserError
+from .._progress import progress_bar
+from ..jax_ops import led_variance, weighted_procrustes
+from ..recording import Recording
+from ._registration import Registration, _quat_matrix, register_leds
+from ._static import static_segments
+from ._weighting import ITERATIVE, PAIRWISE, LedFeatures, get_weighting
+
+CHUNK = 65536  # frames per kernel call: bounded memory on whole recordings
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseEstimate:
+    """Tool poses in the camera frame per tracker frame (camera←tool).
+
+    `position` `(N, 3)` [m], `quaternion_wxyz` `(N, 4)`; NaN where `valid` is False
+    (fewer than three usable LEDs or degenerate geometry). `rms` `(N,)` [m] weighted
+    residual RMS; `n_used` `(N,)` LEDs used. `constellation` `(M, 3)` [m] in the tool
+    frame, as used; `registration` when it came from the data.
+    """
+
+    time: np.ndarray
+    position: np.ndarray
+    quaternion_wxyz: np.ndarray
+    rms: np.ndarray
+    n_used: np.ndarray
+    valid: np.ndarray
+    led_ids: np.ndarray
+    constellation: np.ndarray
+    constellation_source: str
+    registration: Registration | None
+    weighting: str
+    window: int
+    notes: tuple[str, ...] = ()
+
+
+def default_window(time: np.ndarray) -> int:
+    """Odd number of frames spanning about 0.1 s (at least 5)."""
+    dt = float(np.median(np.diff(time))) if time.size > 1 else 1.0
+    n = max(5, int(round(0.1 / dt)))
+    return n + (n % 2 == 0)
+
+
+def chunked_led_variance(
+    positions: np.ndarray, window: int, variant: str, chunk: int = CHUNK
+) -> np.ndarray:
+    """`led_variance` over a whole recording in chunks with a halo of half a window."""
+    n = positions.shape[0]
+    h = window // 2
+    out = np.empty(positions.shape[:2])
+    for a in range(0, n, chunk):
+        b = min(n, a + chunk)
+        lo, hi = max(0, a - h), min(n, b + h)
+        v = np.asarray(led_variance(jnp.asarray(positions[lo:hi]), window, variant=variant))
+        out[a:b] = v[a - lo : a - lo + (b - a)]
+    return out
+
+
+def _emission_angles(position, quaternion_wxyz, constellation, normals):
+    """Emission angle [rad] of each LED toward the camera at the origin, per frame."""
+    r = _quat_matrix(np.nan_to_num(quaternion_wxyz))
+    leds = np.einsum("fij,mj->fmi", r, constellation) + position[:, None, :]
+    nrm = np.einsum("fij,mj->fmi", r, normals)
+    to_cam = -leds / np.linalg.norm(leds, axis=-1, keepdims=True)
+    return np.arctan2(np.linalg.norm(np.cross(to_cam, nrm), axis=-1), np.sum(to_cam * nrm, -1))
+
+
+def fit_poses(
+    constellation: np.ndarray,
+    positions: np.ndarray,
+    weights: np.ndarray,
+    chunk: int = CHUNK,
+    advance: Callable = lambda n=1: None,
+):
+    """Weighted Procrustes over all frames in chunks → numpy arrays of a RigidFit."""
+    n = positions.shape[0]
+    parts = []
+    model = jnp.asarray(constellation)
+    for a in range(0, n, chunk):
+        b = min(n, a + chunk)
+        fit = weighted_procrustes(model, jnp.asarray(positions[a:b]), jnp.asarray(weights[a:b]))
+        parts.append(jax.tree.map(np.asarray, fit))
+        advance(b - a)
+    return jax.tree.map(lambda *x: np.concatenate(x), *parts)
+
+
+def residuals(fit, constellation: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Distance [m] of each seen LED from the fitted pose, `(N, M)` (NaN unseen)."""
+    r = _quat_matrix(np.nan_to_num(fit.quaternion_wxyz))
+    pred = np.einsum("fij,mj->fmi", r, constellation) + np.nan_to_num(fit.position)[:, None, :]
+    return np.linalg.norm(positions - pred, axis=-1)
+
+
+def estimate_poses(
+    rec: Recording,
+    *,
+    weighting: str = "led_noise",
+    window: int | None = None,
+    constellation: np.ndarray | None = None,
+    register: bool = True,
+    params: dict | None = None,
+    progress: bool | None = None,
+) -> PoseEstimate:
+    """Per-frame camera←tool poses of a whole recording.
+
+    The constellation is, in order of preference: `constellation` if given; the one
+    registered from the data's static segments (`register=True`, needs reference LEDs);
+    the nominal `/tool/constellation`. LEDs that registration cannot reference fall back
+    to their nominal position when there is one, else they are not used.
+    """
+    scheme = get_weighting(weighting)
+    params = params or {}
+    positions = np.asarray(rec.positions, np.float64)
+    n, m = positions.shape[:2]
+    if n < 2:
+        raise UserError("the recording has fewer than two frames")
+    seen = rec.visible
+    if seen.sum(1).max(initial=0) < 3:
+        raise UserError("no frame has three or more LEDs seen: no pose can be computed")
+    window = default_window(rec.time) if window is None else int(window)
+    if window < 3 or window > n:
+        raise UserError(f"--window must be between 3 and the number of frames ({n}), got {window}")
+    notes = []
+    with progress_bar("LED variance", 2 * n, progress) as advance:
+        variance = chunked_led_variance(positions, window, "paper")
+        advance(n)
+        pairwise = (
+            chunked_led_variance(positions, window, "pairwise")
+            if weighting in PAIRWISE
+            else np.full((n, m), np.nan)
+        )
+        advance(n)
+
+    nominal = rec.tool.constellation if rec.tool is not None else None
+    registration = None
+    if constellation is not None:
+        const, source = np.asarray(constellation, np.float64), "given"
+    else:
+        const, source = None, "nominal"
+        if register and rec.tool is not None:
+            segments = static_segments(rec.time, positions)
+            try:
+                registration = register_leds(
+                    positions, variance, segments, rec.led_ids, rec.tool.reference_leds, nominal
+                )
+            except UserError as e:
+                if nominal is None:
+                    raise
+                notes.append(f"registration not possible ({e}); nominal constellation used")
+        if registration is not None:
+            const, source = registration.positions.copy(), "registered"
+            lost = ~registration.referenced
+            if lost.any() and nominal is not None:
+                const[lost] = nominal[lost]
+                notes.append(
+                    f"LEDs {rec.led_ids[lost].tolist()} not registered "
+                    f"({'; '.join(sorted(set(registration.reasons.values())))}): nominal positions used"
+                )
+        elif nominal is not None:
+            const = np.asarray(nominal, np.float64)
+        else:
+            raise UserError("no constellation: the recording has no /tool and none was given")
+    usable = np.isfinite(const).all(1)
+    seen_used = seen & usable[None]
+    features = LedFeatures(
+        visible=jnp.asarray(seen_used),
+        variance=jnp.asarray(variance),
+        pairwise_variance=jnp.asarray(pairwise),
+        residual=jnp.zeros((n, m)),
+        emission_angle=jnp.full((n, m), jnp.nan),
+    )
+    const0 = np.where(usable[:, None], const, 0.0)
+    iterative = weighting in ITERATIVE or weighting == "emission_angle"
+    with progress_bar("poses", n * (3 if iterative else 1), progress) as advance:
+        if iterative:  # features from a previous fit: start uniform, refine twice
+            fit = fit_poses(const0, positions, np.asarray(seen_used, np.float64), advance=advance)
+        for _ in range(2 if iterative else 1):
+            if weighting == "emission_angle":
+                if rec.tool is None:
+                    raise UserError("emission_angle weighting needs LED normals in /tool")
+                angles = _emission_angles(
+                    fit.position, fit.quaternion_wxyz, const0, rec.tool.normals
+                )
+                features = dataclasses.replace(features, emission_angle=jnp.asarray(angles))
+            elif iterative:
+                res = np.nan_to_num(residuals(fit, const0, positions))
+                features = dataclasses.replace(features, residual=jnp.asarray(res))
+            weights = np.asarray(scheme(features, **params))
+            fit = fit_poses(const0, positions, weights, advance=advance)
+    return PoseEstimate(
+        time=np.asarray(rec.time),
+        position=fit.position,
+        quaternion_wxyz=fit.quaternion_wxyz,
+        rms=fit.rms,
+        n_used=np.asarray(fit.n_used),
+        valid=np.asarray(fit.valid, bool),
+        led_ids=np.asarray(rec.led_ids),
+        constellation=const,
+        constellation_source=source,
+        registration=registration,
+        weighting=weighting,
+        window=window,
+        notes=tuple(notes),
+    )
+
+
+def errors_against(
+    est: PoseEstimate, position: np.ndarray, quaternion_wxyz: np.ndarray, *, gauge: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Position error [m] and single-angle orientation error [rad] of the estimated poses
+    against reference camera←tool poses (e.g. `/truth/tool_pose`), NaN where not valid.
+
+    With `gauge=True` the constant tool-frame offset between the estimate's tool frame
+    (e.g. the reference-LED frame of a registration) and the reference's is fitted
+    (mean relative pose over valid frames) and removed first.
+    """
+    from ..jax_ops import rotation_angle
+
+    v = est.valid
+    r_ref = _quat_matrix(quaternion_wxyz)
+    r_est = _quat_matrix(np.nan_to_num(est.quaternion_wxyz))
+    # relative pose ref⁻¹·est in the tool frame
+    rel_r = np.einsum("fji,fjk->fik", r_ref, r_est)
+    rel_t = np.einsum("fji,fj->fi", r_ref, np.nan_to_num(est.position) - position)
+    if gauge and v.any():
+        u, _, vt = np.linalg.svd(rel_r[v].mean(0))
+        g_r = u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt
+        g_t = rel_t[v].mean(0)
+    else:
+        g_r, g_t = np.eye(3), np.zeros(3)
+    pos_err = np.linalg.norm(rel_t - g_t, axis=-1)
+    q_est = np.nan_to_num(est.quaternion_wxyz)
+    q_g = _matrix_quat(g_r)
+    ang = np.asarray(
+        rotation_angle(jnp.asarray(quaternion_wxyz), jnp.asarray(_quat_mul(q_est, _quat_conj(q_g))))
+    )
+    return np.where(v, pos_err, np.nan), np.where(v, ang, np.nan)
+
+
+def _quat_conj(q):
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def _quat_mul(a, b):
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
+def _matrix_quat(r):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(r).as_quat(scalar_first=True)

@@ -1,0 +1,149 @@
+"""Weighting schemes: pure, jit-able functions from per-LED features to weights.
+
+A scheme takes an `LedFeatures` and keyword parameters and returns `(frames, leds)`
+non-negative weights, zero where an LED is not seen. Users add their own with
+`register_weighting`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from .._errors import UserError
+
+
+class LedFeatures(eqx.Module):
+    """What a weighting scheme may look at, per frame and LED.
+
+    - `visible`: LED seen.
+    - `variance` [m²]: the paper's LED variance (eq. 3–5), NaN when too few frames.
+    - `pairwise_variance` [m²]: mean windowed variance of the pair distances.
+    - `residual` [m]: distance of the LED from a previous fit (0 before any fit).
+    - `emission_angle` [rad]: angle to the camera from known normals (NaN if unknown).
+    """
+
+    visible: Bool[Array, "frames leds"]
+    variance: Float[Array, "frames leds"]
+    pairwise_variance: Float[Array, "frames leds"]
+    residual: Float[Array, "frames leds"]
+    emission_angle: Float[Array, "frames leds"]
+
+
+WeightingFn = Callable[..., Float[Array, "frames leds"]]
+_REGISTRY: dict[str, WeightingFn] = {}
+
+
+def register_weighting(name: str, fn: WeightingFn | None = None):
+    """Register `fn(features, **params) -> weights` under `name` (usable as a decorator)."""
+
+    def add(f: WeightingFn) -> WeightingFn:
+        _REGISTRY[name] = f
+        return f
+
+    return add if fn is None else add(fn)
+
+
+def weighting_schemes() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def get_weighting(name: str) -> WeightingFn:
+    if name not in _REGISTRY:
+        raise UserError(f"unknown weighting {name!r} (known: {', '.join(weighting_schemes())})")
+    return _REGISTRY[name]
+
+
+def _inverse(v, visible, floor_fraction):
+    """1/v with a floor at `floor_fraction` × the frame's median variance; unknown v → the
+    frame's median (an LED just appeared is neither trusted nor discarded)."""
+    v = jnp.where(visible & jnp.isfinite(v), v, jnp.nan)
+    med = jnp.nanmedian(v, axis=1, keepdims=True)
+    med = jnp.where(jnp.isfinite(med), med, 1.0)
+    v = jnp.where(jnp.isfinite(v), v, med)
+    v = jnp.maximum(v, floor_fraction * med)
+    return jnp.where(visible, 1.0 / v, 0.0)
+
+
+@register_weighting("uniform")
+def uniform(f: LedFeatures) -> Float[Array, "frames leds"]:
+    """Every seen LED counts the same."""
+    return f.visible.astype(f.variance.dtype)
+
+
+@register_weighting("inverse_variance")
+def inverse_variance(f: LedFeatures, floor_fraction: float = 0.05) -> Float[Array, "frames leds"]:
+    """The paper's weighting: 1 / LED variance (eq. 3–5)."""
+    return _inverse(f.variance, f.visible, floor_fraction)
+
+
+@register_weighting("pairwise_inverse_variance")
+def pairwise_inverse_variance(
+    f: LedFeatures, floor_fraction: float = 0.05
+) -> Float[Array, "frames leds"]:
+    """1 / pairwise LED variance (does not jump when partners appear or vanish)."""
+    return _inverse(f.pairwise_variance, f.visible, floor_fraction)
+
+
+@register_weighting("led_noise")
+def led_noise(f: LedFeatures, floor_fraction: float = 0.05) -> Float[Array, "frames leds"]:
+    """1 / the LED's own noise variance, separated from its partners' noise.
+
+    A pair distance varies by both LEDs' noise, ``V_ab = s_a + s_b`` (per-axis
+    variances projected on the pair), so the pairwise LED variance is
+    ``s_a + mean(s_partners)`` and ``s_a ≈ V̄_a − ½·mean_frame(V̄)``. Unlike the paper's
+    variance it neither mixes in the partners' noise nor jumps when they appear or
+    vanish: on simulated data it comes within a few per cent of the Cramér–Rao bound.
+    """
+    pv = jnp.where(f.visible & jnp.isfinite(f.pairwise_variance), f.pairwise_variance, jnp.nan)
+    s = pv - 0.5 * jnp.nanmean(pv, axis=1, keepdims=True)
+    med = jnp.nanmedian(s, axis=1, keepdims=True)
+    med = jnp.where(jnp.isfinite(med) & (med > 0), med, 1.0)
+    s = jnp.where(jnp.isfinite(s), s, med)
+    s = jnp.maximum(s, floor_fraction * med)
+    return jnp.where(f.visible, 1.0 / s, 0.0)
+
+
+@register_weighting("threshold")
+def threshold(f: LedFeatures, factor: float = 3.0) -> Float[Array, "frames leds"]:
+    """Uniform, but LEDs whose variance exceeds `factor` × the frame median are dropped."""
+    v = jnp.where(f.visible & jnp.isfinite(f.variance), f.variance, jnp.nan)
+    med = jnp.nanmedian(v, axis=1, keepdims=True)
+    keep = f.visible & ~(v > factor * med)
+    return keep.astype(f.variance.dtype)
+
+
+@register_weighting("robust")
+def robust(f: LedFeatures, k: float = 1.345, scale: float | None = None):
+    """Huber IRLS weights from the residual of a previous fit: 1 inside k·σ, k·σ/|r| outside.
+
+    σ is `scale` [m] or 1.4826 × the median absolute residual of the seen LEDs.
+    """
+    r = jnp.where(f.visible, f.residual, jnp.nan)
+    s = 1.4826 * jnp.nanmedian(jnp.abs(r)) if scale is None else scale
+    s = jnp.where(s > 0, s, 1.0)
+    a = jnp.abs(jnp.where(f.visible, f.residual, 0.0)) / s
+    w = jnp.where(a <= k, 1.0, k / jnp.maximum(a, k))
+    return jnp.where(f.visible, w, 0.0)
+
+
+@register_weighting("emission_angle")
+def emission_angle_weight(
+    f: LedFeatures, edge: float = 1.134, gain: float = 4.0
+) -> Float[Array, "frames leds"]:
+    """1/σ² of a noise model growing toward the visibility edge: σ ∝ 1 + gain·(θ/edge)⁴.
+
+    Needs LED normals (the tool's emission axes); LEDs of unknown angle count as head-on.
+    """
+    theta = jnp.where(jnp.isfinite(f.emission_angle), f.emission_angle, 0.0)
+    sigma = 1.0 + gain * (theta / edge) ** 4
+    return jnp.where(f.visible, 1.0 / sigma**2, 0.0)
+
+
+#: schemes that need a previous fit's residuals (the pipeline iterates them)
+ITERATIVE = {"robust"}
+#: schemes that need the pairwise LED variance (computed only for them)
+PAIRWISE = {"pairwise_inverse_variance", "led_noise"}
