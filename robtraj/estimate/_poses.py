@@ -76,6 +76,33 @@ def _emission_angles(position, quaternion_wxyz, constellation, normals):
     return np.arctan2(np.linalg.norm(np.cross(to_cam, nrm), axis=-1), np.sum(to_cam * nrm, -1))
 
 
+def _select(rec: Recording, leds, reference_leds):
+    """LED ids, positions `(N, K, 3)`, nominal constellation and normals `(K, 3)` (or
+    None) and reference LED ids for the LEDs of the rigid body."""
+    tool = rec.tool
+    all_ids = np.asarray(rec.led_ids)
+    if leds is None:
+        leds = tool.led_ids if tool is not None else all_ids
+    leds = np.asarray(leds)
+    missing = leds[~np.isin(leds, all_ids)]
+    if missing.size:
+        raise UserError(f"LEDs {missing.tolist()} are not in the recording")
+    cols = np.array([np.flatnonzero(all_ids == i)[0] for i in leds])
+    positions = np.asarray(rec.positions[:, cols], np.float64)
+    nominal = normals = None
+    if tool is not None and tool.constellation is not None:
+        tool_ids = np.asarray(tool.led_ids)
+        have = np.isin(leds, tool_ids)
+        rows = np.array([np.flatnonzero(tool_ids == i)[0] if h else 0 for i, h in zip(leds, have)])
+        nominal = np.where(have[:, None], np.asarray(tool.constellation)[rows], np.nan)
+        if tool.normals is not None:
+            normals = np.where(have[:, None], np.asarray(tool.normals)[rows], np.nan)
+    if reference_leds is None and tool is not None:
+        reference_leds = tool.reference_leds
+    reference = None if reference_leds is None else np.asarray(reference_leds)
+    return leds, positions, nominal, normals, reference
+
+
 def fit_poses(
     constellation: np.ndarray,
     positions: np.ndarray,
@@ -111,6 +138,9 @@ def estimate_poses(
     register: bool = True,
     params: dict | None = None,
     progress: bool | None = None,
+    leds: list[int] | np.ndarray | None = None,
+    reference_leds: list[int] | np.ndarray | None = None,
+    segments: list[tuple[int, int]] | str | None = None,
 ) -> PoseEstimate:
     """Per-frame camera←tool poses of a whole recording.
 
@@ -118,14 +148,19 @@ def estimate_poses(
     registered from the data's static segments (`register=True`, needs reference LEDs);
     the nominal `/tool/constellation`. LEDs that registration cannot reference fall back
     to their nominal position when there is one, else they are not used.
+
+    `leds` restricts the fit to those LED ids (the rigid body; default: the tool's LEDs,
+    else all); `reference_leds` overrides the tool's; `segments` gives the frame ranges
+    registration may use (``"all"``: every frame, for a rigid body that never rests;
+    default: the detected static segments).
     """
     scheme = get_weighting(weighting)
     params = params or {}
-    positions = np.asarray(rec.positions, np.float64)
+    ids, positions, nominal, normals, reference = _select(rec, leds, reference_leds)
     n, m = positions.shape[:2]
     if n < 2:
         raise UserError("the recording has fewer than two frames")
-    seen = rec.visible
+    seen = np.all(np.isfinite(positions), axis=-1)
     if seen.sum(1).max(initial=0) < 3:
         raise UserError("no frame has three or more LEDs seen: no pose can be computed")
     window = default_window(rec.time) if window is None else int(window)
@@ -142,18 +177,18 @@ def estimate_poses(
         )
         advance(n)
 
-    nominal = rec.tool.constellation if rec.tool is not None else None
     registration = None
     if constellation is not None:
         const, source = np.asarray(constellation, np.float64), "given"
     else:
         const, source = None, "nominal"
-        if register and rec.tool is not None:
-            segments = static_segments(rec.time, positions)
+        if register and reference is not None:
+            if segments is None:
+                segments = static_segments(rec.time, positions)
+            elif segments == "all":
+                segments = [(0, n)]
             try:
-                registration = register_leds(
-                    positions, variance, segments, rec.led_ids, rec.tool.reference_leds, nominal
-                )
+                registration = register_leds(positions, variance, segments, ids, reference, nominal)
             except UserError as e:
                 if nominal is None:
                     raise
@@ -164,13 +199,16 @@ def estimate_poses(
             if lost.any() and nominal is not None:
                 const[lost] = nominal[lost]
                 notes.append(
-                    f"LEDs {rec.led_ids[lost].tolist()} not registered "
+                    f"LEDs {ids[lost].tolist()} not registered "
                     f"({'; '.join(sorted(set(registration.reasons.values())))}): nominal positions used"
                 )
         elif nominal is not None:
             const = np.asarray(nominal, np.float64)
         else:
-            raise UserError("no constellation: the recording has no /tool and none was given")
+            raise UserError(
+                "no constellation: the recording has no /tool, none was given, and "
+                "registration needs three reference LEDs"
+            )
     usable = np.isfinite(const).all(1)
     seen_used = seen & usable[None]
     features = LedFeatures(
@@ -187,11 +225,9 @@ def estimate_poses(
             fit = fit_poses(const0, positions, np.asarray(seen_used, np.float64), advance=advance)
         for _ in range(2 if iterative else 1):
             if weighting == "emission_angle":
-                if rec.tool is None:
+                if normals is None:
                     raise UserError("emission_angle weighting needs LED normals in /tool")
-                angles = _emission_angles(
-                    fit.position, fit.quaternion_wxyz, const0, rec.tool.normals
-                )
+                angles = _emission_angles(fit.position, fit.quaternion_wxyz, const0, normals)
                 features = dataclasses.replace(features, emission_angle=jnp.asarray(angles))
             elif iterative:
                 res = np.nan_to_num(residuals(fit, const0, positions))
@@ -205,7 +241,7 @@ def estimate_poses(
         rms=fit.rms,
         n_used=np.asarray(fit.n_used),
         valid=np.asarray(fit.valid, bool),
-        led_ids=np.asarray(rec.led_ids),
+        led_ids=ids,
         constellation=const,
         constellation_source=source,
         registration=registration,
