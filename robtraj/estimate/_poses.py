@@ -11,7 +11,14 @@ import numpy as np
 
 from .._errors import UserError
 from .._progress import progress_bar
-from ..jax_ops import led_variance, weighted_procrustes
+from ..jax_ops import (
+    led_variance,
+    matrix_to_quat,
+    quat_conjugate,
+    quat_multiply,
+    rotation_angle,
+    weighted_procrustes,
+)
 from ..recording import Recording
 from ._registration import Registration, _quat_matrix, register_leds
 from ._static import static_segments
@@ -261,8 +268,6 @@ def errors_against(
     (e.g. the reference-LED frame of a registration) and the reference's is fitted
     (mean relative pose over valid frames) and removed first.
     """
-    from ..jax_ops import rotation_angle
-
     v = est.valid
     r_ref = _quat_matrix(quaternion_wxyz)
     r_est = _quat_matrix(np.nan_to_num(est.quaternion_wxyz))
@@ -276,33 +281,9 @@ def errors_against(
     else:
         g_r, g_t = np.eye(3), np.zeros(3)
     pos_err = np.linalg.norm(rel_t - g_t, axis=-1)
-    q_est = np.nan_to_num(est.quaternion_wxyz)
-    q_g = _matrix_quat(g_r)
+    q_est = jnp.asarray(np.nan_to_num(est.quaternion_wxyz))
+    q_g = matrix_to_quat(jnp.asarray(g_r))
     ang = np.asarray(
-        rotation_angle(jnp.asarray(quaternion_wxyz), jnp.asarray(_quat_mul(q_est, _quat_conj(q_g))))
+        rotation_angle(jnp.asarray(quaternion_wxyz), quat_multiply(q_est, quat_conjugate(q_g)))
     )
     return np.where(v, pos_err, np.nan), np.where(v, ang, np.nan)
-
-
-def _quat_conj(q):
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def _quat_mul(a, b):
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
-
-
-def _matrix_quat(r):
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(r).as_quat(scalar_first=True)

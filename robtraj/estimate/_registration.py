@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
-from ..jax_ops import weighted_procrustes
+from ..jax_ops import quat_to_matrix, weighted_procrustes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,13 +195,5 @@ def register_leds(
 
 
 def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices `(F, 3, 3)` of unit quaternions `(F, 4)` (w, x, y, z)."""
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    """Rotation matrices `(F, 3, 3)` of unit quaternions `(F, 4)` (w, x, y, z), numpy."""
+    return np.asarray(quat_to_matrix(jnp.asarray(q)))

@@ -1,0 +1,168 @@
+"""Bundle-calibration input: a `Recording` checked and turned into padded, chunked arrays.
+
+Everything here is NumPy and runs once per fit. Bad input a user can fix (no robot log,
+no tool, no overlap between the robot and tracker clocks, too few LED observations)
+raises `UserError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._errors import UserError
+from ..model import RobotModel, interpolate_joints, motion_direction, robot_from_log
+from ..recording import Recording
+
+#: minimum number of tracker frames inside the robot log's time span
+MIN_OVERLAP_FRAMES = 10
+
+
+_interp = jax.jit(interpolate_joints)
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationData:
+    """A recording prepared for the bundle calibration (NumPy, SI units).
+
+    Frames are the tracker frames inside the robot log's time span that see at least
+    one LED of the tool; LEDs are the tool's LEDs that the tracker sees somewhere.
+
+    - `time` `(n,)` tracker clock [s]; `frame` `(n,)` index into the recording's frames.
+    - `measured` `(n, m, 3)` LED positions in the camera frame [m], 0 where unseen.
+    - `seen` `(n, m)` bool.
+    - `direction` `(n, joints)` sign of each joint's motion (for `backlash`).
+    - `drift` `(n,)` drift variable of `thermal_drift`: camera temperature change [K]
+      since the first frame, or minutes since the first frame without temperatures.
+    - `log_time` `(k,)`, `joints` `(k, joints)`: the robot log (robot clock).
+    - `led_ids` `(m,)`, `reference` `(m, 3)` the reference constellation the gauge and
+      the initial values refer to, `normals` `(m, 3)` (zeros when the tool has none).
+    - `unseen_leds`: ids of tool LEDs never seen (kept at the reference, not estimated);
+      `led_seen` `(m,)` the complement as a mask.
+    """
+
+    robot: RobotModel
+    time: np.ndarray
+    frame: np.ndarray
+    measured: np.ndarray
+    seen: np.ndarray
+    direction: np.ndarray
+    drift: np.ndarray
+    log_time: np.ndarray
+    joints: np.ndarray
+    led_ids: np.ndarray
+    reference: np.ndarray
+    normals: np.ndarray
+    has_normals: bool
+    nominal_flange_from_tool: np.ndarray  # (7,) wxyz_xyz
+    reference_leds: np.ndarray
+    unseen_leds: tuple[int, ...]
+    led_seen: np.ndarray
+    n_recording_frames: int
+
+    def joints_at(self, idx: np.ndarray, time_offset: float = 0.0) -> np.ndarray:
+        """Logged joint angles `(len(idx), joints)` at frames `idx` (robot clock t + τ)."""
+        t = jnp.asarray(self.time[idx] + time_offset)
+        return np.asarray(_interp(jnp.asarray(self.log_time), jnp.asarray(self.joints), t))
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.time.shape[0])
+
+    @property
+    def n_leds(self) -> int:
+        return int(self.led_ids.shape[0])
+
+
+def prepare(
+    rec: Recording, *, time_offset: float = 0.0, constellation: np.ndarray | None = None
+) -> CalibrationData:
+    """Check `rec` and build the `CalibrationData` (see there).
+
+    `time_offset` [s] is the clock offset used for the backlash motion direction;
+    `constellation` `(tool LEDs, 3)` [m] replaces the nominal one as the reference.
+    """
+    if rec.robot is None:
+        raise UserError("the recording has no robot log (/robot): calibration needs joint angles")
+    if rec.tool is None:
+        raise UserError("the recording has no tool description (/tool): nothing to calibrate")
+    if rec.robot.time.shape[0] < 2:
+        raise UserError("the robot log has fewer than 2 samples")
+    robot = robot_from_log(rec.robot.model, rec.robot.dh)
+    if rec.robot.joints.shape[1] != robot.n_joints:
+        raise UserError(
+            f"/robot/joints has {rec.robot.joints.shape[1]} joints, the robot model {robot.n_joints}"
+        )
+    log_time = np.asarray(rec.robot.time, np.float64)
+    joints = np.asarray(rec.robot.joints, np.float64)
+
+    tool = rec.tool
+    ref = np.asarray(tool.constellation if constellation is None else constellation, np.float64)
+    if ref.shape != np.shape(tool.constellation):
+        raise UserError(f"constellation has shape {ref.shape}, the tool {tool.constellation.shape}")
+    col = {int(i): k for k, i in enumerate(np.asarray(rec.led_ids))}
+    tool_ids = np.asarray(tool.led_ids, np.int64)
+    cols = np.array([col.get(int(i), -1) for i in tool_ids])
+    if not np.any(cols >= 0):
+        raise UserError("none of the tool's LEDs appears in /tracker/led_ids")
+
+    t = np.asarray(rec.time, np.float64)
+    inside = (t + time_offset >= log_time[0]) & (t + time_offset <= log_time[-1])
+    if inside.sum() < MIN_OVERLAP_FRAMES:
+        raise UserError(
+            f"the robot log ({log_time[0]:.3f} s to {log_time[-1]:.3f} s, robot clock) and the "
+            f"tracker frames ({t[0]:.3f} s to {t[-1]:.3f} s) overlap in only {int(inside.sum())} "
+            f"frames (need {MIN_OVERLAP_FRAMES}); are both clocks in the same time base?"
+        )
+    pos = np.full((t.shape[0], tool_ids.shape[0], 3), np.nan)
+    have = cols >= 0
+    pos[:, have] = np.asarray(rec.positions, np.float64)[:, cols[have]]
+    seen = np.all(np.isfinite(pos), axis=-1)
+    led_keep = have  # every tool LED the tracker reports (fixed shapes across recordings)
+    never = ~seen[inside].any(0) & have
+    frame_keep = inside & seen.any(1)
+    frames = np.flatnonzero(frame_keep)
+    pos, seen = pos[frames][:, led_keep], seen[frames][:, led_keep]
+    if seen.sum() < 10:
+        raise UserError(f"only {int(seen.sum())} LED observations overlap the robot log")
+
+    if rec.temperature is not None and np.all(np.isfinite(rec.temperature)):
+        temp = np.asarray(rec.temperature, np.float64)
+        drift = temp[frames] - temp[0]
+    else:
+        drift = (t[frames] - t[0]) / 60.0
+    direction = motion_direction(log_time, joints, t[frames] + time_offset)
+    normals = tool.normals
+    ffs = tool.flange_from_tool
+    nominal_fft = (
+        np.array([1.0, 0, 0, 0, 0, 0, 0])
+        if ffs is None
+        else np.concatenate([ffs.quaternion_wxyz, ffs.position]).astype(np.float64)
+    )
+    return CalibrationData(
+        robot=robot,
+        time=t[frames],
+        frame=frames,
+        measured=np.where(seen[..., None], pos, 0.0),
+        seen=seen,
+        direction=np.asarray(direction, np.float64),
+        drift=drift,
+        log_time=log_time,
+        joints=joints,
+        led_ids=tool_ids[led_keep],
+        reference=ref[led_keep],
+        normals=np.zeros_like(ref[led_keep])
+        if normals is None
+        else np.asarray(normals, np.float64)[led_keep],
+        has_normals=normals is not None,
+        nominal_flange_from_tool=nominal_fft,
+        reference_leds=np.asarray(
+            tool.reference_leds if tool.reference_leds is not None else tool_ids[:3]
+        ),
+        unseen_leds=tuple(int(i) for i in tool_ids[never]),
+        led_seen=seen.any(0),
+        n_recording_frames=int(t.shape[0]),
+    )

@@ -1,0 +1,184 @@
+"""Closed-form initialisation of the bundle calibration (DESIGN section 5.4).
+
+1. Robot poses: static dwells from the joint log (all joints slower than a threshold
+   for at least `min_dwell` seconds); each dwell gives one mean joint vector and the
+   mean position of each LED seen in it. When the dwells make fewer than six distinct
+   poses, up to `max_moving` single moving frames (evenly spread) are added.
+2. Tool poses in the camera frame: weighted Procrustes of the reference constellation
+   to each group's LED positions (`robtraj.jax_ops.weighted_procrustes`).
+3. Flange poses: forward kinematics of the group's joints (nominal robot + fixed effects).
+4. Robot-world/hand-eye ``camera_from_tool_i = Z · base_from_flange_i · X`` solved by
+   Shah's closed form (Kronecker null space of the rotation equations, then
+   orthonormalisation, then linear least squares for the translations).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from .._errors import UserError
+from ..model import Effects, flange_poses
+from ._calib_data import CalibrationData
+
+_STATIC_SPEED = 1e-4  # [rad/s] every joint slower than this: the robot stands still
+_DISTINCT = 1e-3  # [rad] joint vectors closer than this are the same pose
+_ENOUGH_DWELLS = 6  # fewer distinct dwells: add single moving frames as poses
+
+
+def _dwells(data: CalibrationData, min_dwell: float) -> list[np.ndarray]:
+    """Frame-index arrays (into `data`) of static dwells."""
+    speed = np.abs(np.gradient(data.joints, data.log_time, axis=0)).max(1)
+    k = np.clip(np.searchsorted(data.log_time, data.time, side="right") - 1, 0, None)
+    k1 = np.clip(k + 1, 0, data.log_time.shape[0] - 1)
+    static = (speed[k] < _STATIC_SPEED) & (speed[k1] < _STATIC_SPEED)
+    gaps = np.diff(data.time) > 5 * np.median(np.diff(data.time)) if data.n_frames > 1 else []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], static.astype(np.int8), [0]])))
+    out = []
+    for a, b in zip(edges[::2], edges[1::2]):
+        if data.time[b - 1] - data.time[a] < min_dwell or b - a < 3:
+            continue
+        cut = np.flatnonzero(gaps[a : b - 1]) + a + 1 if len(gaps) else []
+        for part in np.split(np.arange(a, b), cut):
+            if part.size >= 3:
+                out.append(part)
+    return out
+
+
+def _distinct(q: np.ndarray) -> int:
+    reps: list[np.ndarray] = []
+    for row in q:
+        if all(np.max(np.abs(row - r)) > _DISTINCT for r in reps):
+            reps.append(row)
+    return len(reps)
+
+
+def _rotation_rank(quats: np.ndarray) -> int:
+    """Number of independent rotation axes among the poses' rotations relative to the first."""
+    r0 = jaxlie.SO3(jnp.asarray(quats[0]))
+    rv = np.asarray(jax.vmap(lambda q: (r0.inverse() @ jaxlie.SO3(q)).log())(jnp.asarray(quats)))
+    s = np.linalg.svd(rv, compute_uv=False) if rv.shape[0] > 1 else np.zeros(1)
+    return int(np.sum(s > np.deg2rad(1.0)))
+
+
+@jax.jit
+def _procrustes(model, measured, weight):
+    from ..jax_ops import weighted_procrustes
+
+    return weighted_procrustes(model, jnp.where(weight[..., None] > 0, measured, jnp.nan), weight)
+
+
+@jax.jit
+def _flange(robot, effects, q):
+    return flange_poses(robot, effects, q, jnp.ones_like(q)).wxyz_xyz
+
+
+def pose_pairs(
+    data: CalibrationData,
+    effects: Effects,
+    constellation: np.ndarray,
+    *,
+    min_dwell: float = 0.2,
+    max_moving: int = 60,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(camera_from_tool (G, 7), base_from_flange (G, 7), n_dwells)`` as jaxlie
+    ``wxyz_xyz`` for the groups (static dwells first, then moving frames if needed)."""
+    dwells = _dwells(data, min_dwell)
+    moving = np.ones(data.n_frames, bool)
+    for d in dwells:
+        moving[d] = False
+    groups = list(dwells)
+    q_all = data.joints_at(np.arange(data.n_frames))
+    q_groups = [q_all[d].mean(0) for d in groups]
+    if not groups or _distinct(np.array(q_groups)) < _ENOUGH_DWELLS:
+        idx = np.flatnonzero(moving & (data.seen.sum(1) >= 4))
+        if idx.size:
+            take = idx[np.linspace(0, idx.size - 1, min(max_moving, idx.size)).round().astype(int)]
+            groups += [np.array([i]) for i in np.unique(take)]
+            q_groups += [q_all[i] for i in np.unique(take)]
+    n_distinct = _distinct(np.array(q_groups)) if q_groups else 0
+    if n_distinct <= 1:
+        raise UserError(
+            "all usable frames are at one robot pose: calibration needs the robot at several "
+            "distinct poses (at least 3, rotated about different axes)"
+        )
+    if n_distinct < 3:
+        raise UserError(
+            f"only {n_distinct} distinct robot poses in the recording; calibration needs at "
+            "least 3, rotated about different axes"
+        )
+    mean = np.full((len(groups), data.n_leds, 3), np.nan)
+    weight = np.zeros((len(groups), data.n_leds))
+    for i, g in enumerate(groups):
+        seen = data.seen[g]
+        cnt = seen.sum(0)
+        ok = cnt >= max(1, 0.5 * g.size)
+        s = (data.measured[g] * seen[..., None]).sum(0)
+        mean[i, ok] = s[ok] / cnt[ok, None]
+        weight[i, ok] = cnt[ok]
+    n_groups = len(groups)
+    pad = -n_groups % 32  # fixed shapes: one compilation for many recordings
+    mean = np.concatenate([mean, np.zeros((pad, *mean.shape[1:]))])
+    weight = np.concatenate([weight, np.zeros((pad, weight.shape[1]))])
+    fit = _procrustes(jnp.asarray(constellation), jnp.asarray(mean), jnp.asarray(weight))
+    valid = (np.asarray(fit.valid) & ((weight > 0).sum(1) >= 3))[:n_groups]
+    camera_from_tool = np.concatenate(
+        [np.asarray(fit.quaternion_wxyz), np.asarray(fit.position)], -1
+    )[:n_groups]
+    q = np.array(q_groups)
+    q_pad = np.concatenate([q, np.repeat(q[:1], pad, 0)])
+    base_from_flange = np.asarray(_flange(data.robot, effects, jnp.asarray(q_pad)))[:n_groups]
+    camera_from_tool, base_from_flange = camera_from_tool[valid], base_from_flange[valid]
+    if _distinct(q[valid]) < 3 or _rotation_rank(base_from_flange[:, :4]) < 2:
+        raise UserError(
+            "too few distinct robot poses with the tool seen: calibration needs at least 3 "
+            "poses rotated about at least two different axes"
+        )
+    return camera_from_tool, base_from_flange, len(dwells)
+
+
+def _orthonormal(m: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(m)
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        r = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+    return r
+
+
+def robot_world_hand_eye(
+    camera_from_tool: np.ndarray, base_from_flange: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form ``(camera_from_base, flange_from_tool)`` (jaxlie ``wxyz_xyz``, `(7,)`).
+
+    Solves ``camera_from_tool_i = Z · base_from_flange_i · X`` for Z = camera←base and
+    X = flange←tool by Shah's method (2013): with Y = X⁻¹ the rotations satisfy
+    ``R_A R_Y = R_Z R_B``, a linear system in vec(R_Y), vec(R_Z) whose null vector is
+    scaled and orthonormalised; then ``R_A t_Y − t_Z = R_Z t_B − t_A`` by least squares.
+    Inputs `(G, 7)` ``wxyz_xyz``, G ≥ 3 poses rotated about two different axes.
+    """
+    A = np.asarray(jax.vmap(lambda p: jaxlie.SE3(p).as_matrix())(jnp.asarray(camera_from_tool)))
+    B = np.asarray(jax.vmap(lambda p: jaxlie.SE3(p).as_matrix())(jnp.asarray(base_from_flange)))
+    eye = np.eye(3)
+    rows = [np.hstack([np.kron(eye, a[:3, :3]), -np.kron(b[:3, :3].T, eye)]) for a, b in zip(A, B)]
+    _, _, vt = np.linalg.svd(np.vstack(rows))
+    v = vt[-1]
+    ry = v[:9].reshape(3, 3, order="F")
+    rz = v[9:].reshape(3, 3, order="F")
+    d = np.linalg.det(ry)
+    alpha = np.sign(d) * np.abs(d) ** (-1.0 / 3.0)
+    ry, rz = _orthonormal(alpha * ry), _orthonormal(alpha * rz)
+    lhs = np.vstack([np.hstack([a[:3, :3], -eye]) for a in A])
+    rhs = np.concatenate([rz @ b[:3, 3] - a[:3, 3] for a, b in zip(A, B)])
+    sol = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    ty, tz = sol[:3], sol[3:]
+    Y = np.eye(4)
+    Y[:3, :3], Y[:3, 3] = ry, ty
+    Z = np.eye(4)
+    Z[:3, :3], Z[:3, 3] = rz, tz
+    X = np.linalg.inv(Y)
+    X[:3, :3] = _orthonormal(X[:3, :3])
+    z_pose = np.asarray(jaxlie.SE3.from_matrix(jnp.asarray(Z)).wxyz_xyz)
+    x_pose = np.asarray(jaxlie.SE3.from_matrix(jnp.asarray(X)).wxyz_xyz)
+    return z_pose, x_pose
