@@ -26,8 +26,7 @@ def register(sub) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..estimate import estimate_poses, write_poses
-    from ..estimate._poses import errors_against
+    from ..estimate import errors_against, estimate_poses, write_poses
     from ..recording import write_recording
     from ..report._demo_figures import pose_comparison_figure, visibility_figure
     from ..sim import simulate

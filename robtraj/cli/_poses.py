@@ -49,7 +49,7 @@ def register(sub) -> argparse.ArgumentParser:
 
 
 def summarise(est, rec) -> dict:
-    from ..estimate._poses import errors_against
+    from ..estimate import errors_against
 
     v = est.valid
     out = {

@@ -102,11 +102,15 @@ def _split(g: Array, problem: BundleProblem):
     return cfb, fft, eff
 
 
-def tool_poses(g: Array, problem: BundleProblem, frames: Frames) -> tuple[jaxlie.SE3, Effects]:
+def tool_poses(
+    g: Array, problem: BundleProblem, frames: Frames, base_from_flange: jaxlie.SE3 | None = None
+) -> tuple[jaxlie.SE3, Effects]:
     """camera←tool per frame (the model's `predict_tool_poses`, with cached FK when
-    no kinematic effect is free)."""
+    no kinematic effect is free, or the given `base_from_flange`)."""
     cfb, fft, eff = _split(g, problem)
-    if problem.kinematic:
+    if base_from_flange is not None:
+        pass
+    elif problem.kinematic:
         q = interpolate_joints(problem.log_time, problem.joints, frames.time + eff.time_offset)
         base_from_flange = flange_poses(problem.robot, eff, q, frames.direction)
     else:
@@ -142,6 +146,32 @@ def residual_fn(params: BundleParams, args: tuple[BundleProblem, Frames]) -> Arr
     return residuals(params, *args)
 
 
+def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
+    """camera←tool per frame and ``∂ξ/∂g`` `(C, 6, q)` of its tangent ``T(g) = T(0) exp(ξ)``.
+
+    The pose columns are taken with the flange poses held fixed, so that only the
+    effect columns push tangents through the forward kinematics.
+    """
+    if problem.kinematic:
+        _, _, eff = _split(g, problem)
+        q = interpolate_joints(problem.log_time, problem.joints, frames.time + eff.time_offset)
+        fl0 = flange_poses(problem.robot, eff, q, frames.direction)
+    else:
+        fl0 = jaxlie.SE3(frames.base_from_flange)
+    tool0, _ = tool_poses(g, problem, frames, fl0)
+
+    def xi(tool):
+        return jax.vmap(lambda a, b: (a.inverse() @ b).log())(tool0, tool)
+
+    j_pose = jax.jacfwd(lambda gp: xi(tool_poses(g.at[:12].set(gp), problem, frames, fl0)[0]))(
+        g[:12]
+    )
+    if g.shape[0] == 12:
+        return tool0, j_pose
+    j_eff = jax.jacfwd(lambda ge: xi(tool_poses(g.at[12:].set(ge), problem, frames)[0]))(g[12:])
+    return tool0, jnp.concatenate([j_pose, j_eff], -1)
+
+
 def _led_effect_columns(problem: BundleProblem) -> list[int]:
     """Indices in g of effect entries that act on the LED positions directly."""
     cols, i = [], 12
@@ -160,13 +190,8 @@ def _chunk_terms(g, p, problem, frames):
     position w.r.t. ξ (6 tangents), w.r.t. the LED-level effects and w.r.t. its own
     constellation entry (3 tangents).
     """
-    tool0, eff0 = tool_poses(g, problem, frames)
-
-    def xi_of(gg):
-        tool, _ = tool_poses(gg, problem, frames)
-        return jax.vmap(lambda a, b: (a.inverse() @ b).log())(tool0, tool)
-
-    tool_g = jax.jacfwd(xi_of)(g)  # (C, 6, q)
+    tool0, tool_g = _tool_jacobian(g, problem, frames)
+    eff0 = apply_effects(problem.effects, problem.free, g[12:])
     led_cols = _led_effect_columns(problem)
 
     def leds(xi, p_, g_led):
@@ -229,13 +254,7 @@ def _chunk_terms_rigid(g, p, problem, frames):
     cancels in every product and the per-frame 6×6 blocks are weighted moments of the
     constellation. Same result as the forward-mode path, an order of magnitude faster.
     """
-    tool0, _ = tool_poses(g, problem, frames)
-
-    def xi_of(gg):
-        tool, _ = tool_poses(gg, problem, frames)
-        return jax.vmap(lambda a, b: (a.inverse() @ b).log())(tool0, tool)
-
-    tg = jax.jacfwd(xi_of)(g)  # (C, 6, q)
+    tool0, tg = _tool_jacobian(g, problem, frames)
     rot = jax.vmap(lambda t: t.rotation().as_matrix())(tool0)  # (C, 3, 3)
     pred = jnp.einsum("cij,mj->cmi", rot, p) + tool0.translation()[:, None, :]
     w = frames.sqrt_weight**2

@@ -22,7 +22,7 @@ from ..jax_ops import (
 from ..recording import Recording
 from ._registration import Registration, _quat_matrix, register_leds
 from ._static import static_segments
-from ._weighting import ITERATIVE, PAIRWISE, LedFeatures, get_weighting
+from ._weighting import LedFeatures, get_weighting, weighting_needs
 
 CHUNK = 65536  # frames per kernel call: bounded memory on whole recordings
 
@@ -162,6 +162,7 @@ def estimate_poses(
     default: the detected static segments).
     """
     scheme = get_weighting(weighting)
+    needs = weighting_needs(weighting)
     params = params or {}
     ids, positions, nominal, normals, reference = _select(rec, leds, reference_leds)
     n, m = positions.shape[:2]
@@ -179,7 +180,7 @@ def estimate_poses(
         advance(n)
         pairwise = (
             chunked_led_variance(positions, window, "pairwise")
-            if weighting in PAIRWISE
+            if "pairwise_variance" in needs
             else np.full((n, m), np.nan)
         )
         advance(n)
@@ -226,17 +227,17 @@ def estimate_poses(
         emission_angle=jnp.full((n, m), jnp.nan),
     )
     const0 = np.where(usable[:, None], const, 0.0)
-    iterative = weighting in ITERATIVE or weighting == "emission_angle"
+    iterative = bool(needs & {"residual", "emission_angle"})
     with progress_bar("poses", n * (3 if iterative else 1), progress) as advance:
         if iterative:  # features from a previous fit: start uniform, refine twice
             fit = fit_poses(const0, positions, np.asarray(seen_used, np.float64), advance=advance)
         for _ in range(2 if iterative else 1):
-            if weighting == "emission_angle":
+            if "emission_angle" in needs:
                 if normals is None:
                     raise UserError("emission_angle weighting needs LED normals in /tool")
                 angles = _emission_angles(fit.position, fit.quaternion_wxyz, const0, normals)
                 features = dataclasses.replace(features, emission_angle=jnp.asarray(angles))
-            elif iterative:
+            if "residual" in needs:
                 res = np.nan_to_num(residuals(fit, const0, positions))
                 features = dataclasses.replace(features, residual=jnp.asarray(res))
             weights = np.asarray(scheme(features, **params))

@@ -35,16 +35,33 @@ class LedFeatures(eqx.Module):
 
 WeightingFn = Callable[..., Float[Array, "frames leds"]]
 _REGISTRY: dict[str, WeightingFn] = {}
+_NEEDS: dict[str, frozenset[str]] = {}
+FEATURES = frozenset({"variance", "pairwise_variance", "residual", "emission_angle"})
 
 
-def register_weighting(name: str, fn: WeightingFn | None = None):
-    """Register `fn(features, **params) -> weights` under `name` (usable as a decorator)."""
+def register_weighting(name: str, fn: WeightingFn | None = None, *, needs=("variance",)):
+    """Register `fn(features, **params) -> weights` under `name` (usable as a decorator).
+
+    `needs` names the `LedFeatures` fields the scheme reads beyond `visible`; the pose
+    pipeline computes only those (``residual`` and ``emission_angle`` come from a
+    previous fit, so such schemes are iterated).
+    """
+    unknown = set(needs) - FEATURES
+    if unknown:
+        raise ValueError(f"unknown features {sorted(unknown)}; choose from {sorted(FEATURES)}")
 
     def add(f: WeightingFn) -> WeightingFn:
         _REGISTRY[name] = f
+        _NEEDS[name] = frozenset(needs)
         return f
 
     return add if fn is None else add(fn)
+
+
+def weighting_needs(name: str) -> frozenset[str]:
+    """The features scheme `name` reads."""
+    get_weighting(name)
+    return _NEEDS[name]
 
 
 def weighting_schemes() -> list[str]:
@@ -68,7 +85,7 @@ def _inverse(v, visible, floor_fraction):
     return jnp.where(visible, 1.0 / v, 0.0)
 
 
-@register_weighting("uniform")
+@register_weighting("uniform", needs=())
 def uniform(f: LedFeatures) -> Float[Array, "frames leds"]:
     """Every seen LED counts the same."""
     return f.visible.astype(f.variance.dtype)
@@ -80,7 +97,7 @@ def inverse_variance(f: LedFeatures, floor_fraction: float = 0.05) -> Float[Arra
     return _inverse(f.variance, f.visible, floor_fraction)
 
 
-@register_weighting("pairwise_inverse_variance")
+@register_weighting("pairwise_inverse_variance", needs=("pairwise_variance",))
 def pairwise_inverse_variance(
     f: LedFeatures, floor_fraction: float = 0.05
 ) -> Float[Array, "frames leds"]:
@@ -88,7 +105,7 @@ def pairwise_inverse_variance(
     return _inverse(f.pairwise_variance, f.visible, floor_fraction)
 
 
-@register_weighting("led_noise")
+@register_weighting("led_noise", needs=("pairwise_variance",))
 def led_noise(f: LedFeatures, floor_fraction: float = 0.05) -> Float[Array, "frames leds"]:
     """1 / the LED's own noise variance, separated from its partners' noise.
 
@@ -116,7 +133,7 @@ def threshold(f: LedFeatures, factor: float = 3.0) -> Float[Array, "frames leds"
     return keep.astype(f.variance.dtype)
 
 
-@register_weighting("robust")
+@register_weighting("robust", needs=("residual",))
 def robust(f: LedFeatures, k: float = 1.345, scale: float | None = None):
     """Huber IRLS weights from the residual of a previous fit: 1 inside k·σ, k·σ/|r| outside.
 
@@ -130,7 +147,7 @@ def robust(f: LedFeatures, k: float = 1.345, scale: float | None = None):
     return jnp.where(f.visible, w, 0.0)
 
 
-@register_weighting("emission_angle")
+@register_weighting("emission_angle", needs=("emission_angle",))
 def emission_angle_weight(
     f: LedFeatures, edge: float = 1.134, gain: float = 4.0
 ) -> Float[Array, "frames leds"]:
@@ -141,9 +158,3 @@ def emission_angle_weight(
     theta = jnp.where(jnp.isfinite(f.emission_angle), f.emission_angle, 0.0)
     sigma = 1.0 + gain * (theta / edge) ** 4
     return jnp.where(f.visible, 1.0 / sigma**2, 0.0)
-
-
-#: schemes that need a previous fit's residuals (the pipeline iterates them)
-ITERATIVE = {"robust"}
-#: schemes that need the pairwise LED variance (computed only for them)
-PAIRWISE = {"pairwise_inverse_variance", "led_noise"}

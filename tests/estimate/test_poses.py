@@ -161,7 +161,7 @@ def test_every_builtin_scheme_runs_and_a_user_scheme_registers(paper):
         assert est.valid.mean() > 0.99
         assert np.nanmedian(est.rms) < 100e-6
 
-    @register_weighting("apex_only_heavy")
+    @register_weighting("apex_only_heavy", needs=())
     def heavy(f: LedFeatures, factor: float = 10.0):
         return jnp.where(f.visible, 1.0, 0.0).at[:, 0].multiply(factor)
 
