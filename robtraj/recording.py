@@ -178,7 +178,10 @@ def _write_pose(group: h5py.Group, name: str, pose: Pose, *, time_chunked: bool 
     g = group.create_group(name)
     _create(g, "position", np.asarray(pose.position, np.float64), time_chunked=time_chunked)
     _create(
-        g, "quaternion_wxyz", np.asarray(pose.quaternion_wxyz, np.float64), time_chunked=time_chunked
+        g,
+        "quaternion_wxyz",
+        np.asarray(pose.quaternion_wxyz, np.float64),
+        time_chunked=time_chunked,
     )
 
 
@@ -311,7 +314,10 @@ def read_recording(path: str | os.PathLike) -> Recording:
     try:
         f = h5py.File(path, "r")
     except OSError as e:
-        raise UserError(f"{path}: not a readable HDF5 file ({e})") from None
+        try:  # a recorder killed mid-write leaves the SWMR "open for write" flag set
+            f = h5py.File(path, "r", swmr=True)
+        except OSError:
+            raise UserError(f"{path}: not a readable HDF5 file ({e})") from None
     with f:
         name = str(path)
         schema = f.attrs.get("schema")
@@ -568,6 +574,8 @@ class RecordingAppender:
     - `led_ids`: `(M,)` LED identifiers (the LED axis of `/tracker/positions`).
     - `attrs`: extra root attributes (``source`` defaults to ``"device"``).
     - `with_status`, `with_temperature`: create the optional tracker datasets.
+    - `compression`: of positions and status: ``"gzip"`` (level 1, default), ``"lzf"``
+      (faster) or None (fastest; a recorder may trade file size for CPU).
     """
 
     def __init__(
@@ -579,8 +587,14 @@ class RecordingAppender:
         with_status: bool = True,
         with_temperature: bool = True,
         overwrite: bool = False,
+        compression: str | None = "gzip",
     ) -> None:
         self.path = Path(path)
+        comp: dict[str, Any] = {"compression": compression}
+        if compression == "gzip":
+            comp.update(compression_opts=1, shuffle=True)
+        elif compression == "lzf":
+            comp.update(shuffle=True)
         if self.path.exists() and not overwrite:
             raise UserError(f"{self.path} exists; refusing to overwrite it (use --force)")
         self.led_ids = np.asarray(led_ids, np.int32)
@@ -610,14 +624,12 @@ class RecordingAppender:
                 "f8",
                 maxshape=(None, m, 3),
                 chunks=(c, m, 3),
-                compression="gzip",
-                compression_opts=1,
-                shuffle=True,
+                **comp,
             ),
         }
         if with_status:
             self._ds["status"] = t.create_dataset(
-                "status", (0, m), "u1", maxshape=(None, m), chunks=(c, m), compression="gzip"
+                "status", (0, m), "u1", maxshape=(None, m), chunks=(c, m), **comp
             )
         if with_temperature:
             self._ds["temperature"] = t.create_dataset(

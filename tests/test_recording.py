@@ -109,7 +109,15 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path, capsys):
 
 def test_console_command_help_and_missing_file():
     r = subprocess.run(
-        [sys.executable, "-m", "robtraj", "poses", "/nonexistent.h5", "-o", "/nonexistent-dir/x.h5"],
+        [
+            sys.executable,
+            "-m",
+            "robtraj",
+            "poses",
+            "/nonexistent.h5",
+            "-o",
+            "/nonexistent-dir/x.h5",
+        ],
         capture_output=True,
         text=True,
     )
