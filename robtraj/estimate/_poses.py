@@ -283,7 +283,7 @@ def errors_against(
         g_r, g_t = np.eye(3), np.zeros(3)
     pos_err = np.linalg.norm(rel_t - g_t, axis=-1)
     q_est = jnp.asarray(np.nan_to_num(est.quaternion_wxyz))
-    q_g = matrix_to_quat(jnp.asarray(g_r))
+    q_g = jnp.broadcast_to(matrix_to_quat(jnp.asarray(g_r)), q_est.shape)
     ang = np.asarray(
         rotation_angle(jnp.asarray(quaternion_wxyz), quat_multiply(q_est, quat_conjugate(q_g)))
     )

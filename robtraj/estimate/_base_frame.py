@@ -1,0 +1,75 @@
+"""Measured tool poses in the robot base frame, from a recording and its calibration."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._errors import UserError
+from ..jax_ops import quat_conjugate, quat_multiply, quat_rotate
+from ..recording import Recording
+from ._poses import PoseEstimate, estimate_poses
+
+
+@dataclasses.dataclass(frozen=True)
+class BaseFramePoses:
+    """base←tool per tracker frame: `position` `(N, 3)` [m], `quaternion_wxyz` `(N, 4)`,
+    NaN where `valid` is False; `poses` the camera-frame estimate they come from."""
+
+    time: np.ndarray
+    position: np.ndarray
+    quaternion_wxyz: np.ndarray
+    valid: np.ndarray
+    poses: PoseEstimate
+
+
+def load_calibration(path: str | Path):
+    """Read a CALIB.json written by `robtraj calibrate`."""
+    from .calibration import CalibrationResult
+
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: no such file (run `robtraj calibrate` first)")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise UserError(f"{path}: not JSON ({e.msg} at line {e.lineno})") from None
+    return CalibrationResult.from_json(doc)
+
+
+def base_frame_poses(
+    rec: Recording, calibration, *, weighting: str = "led_noise", progress: bool | None = None
+) -> BaseFramePoses:
+    """Per-frame base←tool = (camera←base)⁻¹ · camera←tool, the camera-frame poses fitted
+    with the calibration's constellation (so the tool frame is the calibration's).
+
+    A calibrated `tracker_scale` is divided out of the measurements first; a calibrated
+    `thermal_drift` is applied per frame from `/tracker/temperature`.
+    """
+    led_ids = np.asarray(calibration.led_ids)
+    scale = 1.0 + float(np.asarray(calibration.effects.get("tracker_scale", 0.0)))
+    positions = np.asarray(rec.positions) / scale
+    est = estimate_poses(
+        rec.replace(positions=positions),
+        weighting=weighting,
+        constellation=np.asarray(calibration.constellation),
+        leds=led_ids,
+        progress=progress,
+    )
+    cfb = calibration.camera_from_base
+    t_cb = np.broadcast_to(np.asarray(cfb.position, float), est.position.shape).copy()
+    drift = np.asarray(calibration.effects.get("thermal_drift", np.zeros(3)), float)
+    if np.any(drift) and rec.temperature is not None:
+        t_cb += (rec.temperature.astype(float) - float(rec.temperature[0]))[:, None] * drift
+    n = est.position.shape[0]
+    q_bc = jnp.broadcast_to(quat_conjugate(jnp.asarray(cfb.quaternion_wxyz)), (n, 4))
+    q = np.asarray(quat_multiply(q_bc, jnp.asarray(np.nan_to_num(est.quaternion_wxyz))))
+    p = np.asarray(quat_rotate(q_bc, jnp.asarray(np.nan_to_num(est.position) - t_cb)))
+    valid = est.valid
+    q = np.where(valid[:, None], q, np.nan)
+    p = np.where(valid[:, None], p, np.nan)
+    return BaseFramePoses(np.asarray(rec.time), p, q, valid, est)

@@ -1,0 +1,258 @@
+"""weighted_procrustes against scipy's align_vectors, gradients, degenerate frames."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _jax_ops_reference import tool_recording
+from hypothesis import given, settings, strategies as st
+from scipy.spatial.transform import Rotation
+
+from robtraj.jax_ops import collinear_threshold, quat_to_matrix, weighted_procrustes
+
+
+def _scipy_fit(model, measured, weights):
+    """Per-frame reference: weighted centroids + Rotation.align_vectors (Kabsch/SVD)."""
+    n = measured.shape[0]
+    rot = np.full((n, 3, 3), np.nan)
+    pos = np.full((n, 3), np.nan)
+    for i in range(n):
+        used = (weights[i] > 0) & np.all(np.isfinite(measured[i]), axis=1)
+        w = weights[i, used]
+        p, y = model[used], measured[i, used]
+        p_bar, y_bar = w @ p / w.sum(), w @ y / w.sum()
+        r, _ = Rotation.align_vectors(y - y_bar, p - p_bar, weights=w)
+        rot[i] = r.as_matrix()
+        pos[i] = y_bar - rot[i] @ p_bar
+    return rot, pos
+
+
+def _random_case(n, m, seed, *, near_pi=False, planar=False, occlusion=0.3, noise=20e-6):
+    rng = np.random.default_rng(seed)
+    model = 0.1 * rng.normal(size=(m, 3))
+    if planar:
+        model[:, 2] *= 1e-3
+    rot = Rotation.random(n, random_state=seed)
+    if near_pi:
+        axis = rng.normal(size=(n, 3))
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        angle = np.pi - 10.0 ** rng.uniform(-9, -2, size=(n, 1))
+        rot = Rotation.from_rotvec(axis * angle)
+    trans = rng.normal(size=(n, 3))
+    measured = np.einsum("nij,mj->nmi", rot.as_matrix(), model) + trans[:, None, :]
+    measured += noise * rng.normal(size=measured.shape)
+    weights = rng.uniform(0.2, 3.0, size=(n, m))
+    hidden = rng.uniform(size=(n, m)) < occlusion
+    hidden[:, :3] = False  # keep >= 3 LEDs
+    weights[hidden] = 0.0
+    measured[hidden & (rng.uniform(size=(n, m)) < 0.7)] = np.nan  # NaN where weight 0
+    return model, measured, weights
+
+
+@pytest.mark.parametrize("kind", ["generic", "near_pi", "planar", "no_noise", "many_frames_model"])
+def test_matches_scipy_align_vectors(kind):
+    model, measured, weights = _random_case(
+        40,
+        8,
+        seed=hash(kind) % 1000,
+        near_pi=kind == "near_pi",
+        planar=kind == "planar",
+        noise=0.0 if kind == "no_noise" else 20e-6,
+    )
+    model_arg = np.broadcast_to(model, measured.shape) if kind == "many_frames_model" else model
+    fit = weighted_procrustes(jnp.asarray(model_arg), jnp.asarray(measured), jnp.asarray(weights))
+    rot_ref, pos_ref = _scipy_fit(model, measured, weights)
+    assert np.all(np.asarray(fit.valid))
+    q = np.asarray(fit.quaternion_wxyz)
+    assert np.all(q[:, 0] >= 0)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(quat_to_matrix(fit.quaternion_wxyz)), rot_ref, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(fit.position), pos_ref, atol=1e-10)
+    n_used = ((weights > 0) & np.all(np.isfinite(measured), axis=2)).sum(1)
+    np.testing.assert_array_equal(np.asarray(fit.n_used), n_used)
+    # rms = sqrt(Σ w |r|² / Σ w) of the reference pose
+    res = measured - (np.einsum("nij,mj->nmi", rot_ref, model) + pos_ref[:, None])
+    w = np.where(np.isfinite(res[..., 0]), weights, 0.0)
+    rms = np.sqrt(np.nansum(w * np.sum(np.nan_to_num(res) ** 2, -1), 1) / w.sum(1))
+    np.testing.assert_allclose(np.asarray(fit.rms), rms, rtol=1e-6, atol=1e-12)
+
+
+def test_degenerate_frames_are_flagged_with_nan_pose():
+    model = np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0, 0.1, 0], [0.05, 0.05, 0.08]])
+    measured = np.broadcast_to(model + [1.0, 2.0, 3.0], (5, 5, 3)).copy()
+    weights = np.ones((5, 5))
+    weights[0, 2:] = 0.0  # two LEDs
+    weights[1, 3:] = 0.0  # three collinear LEDs (exactly)
+    weights[2, 3:] = 0.0
+    measured[2, 2] += [0.0, 1e-7, 0.0]  # measured near-collinear, model collinear
+    weights[3, :] = 0.0  # nothing
+    measured[0, 2:] = np.nan
+    fit = weighted_procrustes(jnp.asarray(model), jnp.asarray(measured), jnp.asarray(weights))
+    np.testing.assert_array_equal(np.asarray(fit.valid), [False, False, False, False, True])
+    np.testing.assert_array_equal(np.asarray(fit.n_used), [2, 3, 3, 0, 5])
+    assert np.all(np.isnan(np.asarray(fit.quaternion_wxyz)[:4]))
+    assert np.all(np.isnan(np.asarray(fit.position)[:4]))
+    assert np.all(np.isnan(np.asarray(fit.rms)[:4]))
+    assert np.asarray(fit.condition)[4] > collinear_threshold(jnp.float64)
+    np.testing.assert_allclose(np.asarray(fit.position)[4], [1.0, 2.0, 3.0], atol=1e-14)
+
+
+def test_nearly_collinear_threshold_is_relative():
+    # LEDs 12 µm off a 0.2 m line: condition ~ (off/len)², flagged at sqrt(eps) in f64.
+    line = np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]], float)
+    for off, expect in ((1e-3, True), (1e-7, False)):
+        model = line + [[0, 0, 0], [0, off, 0], [0, 0, 0]]
+        measured = (model + 0.5)[None]
+        fit = weighted_procrustes(jnp.asarray(model), jnp.asarray(measured), jnp.ones((1, 3)))
+        assert bool(fit.valid[0]) is expect
+
+
+def test_reflection_gives_proper_rotation():
+    model, measured, weights = _random_case(10, 7, seed=3, occlusion=0.0)
+    mirrored = measured * np.array([1.0, 1.0, -1.0])
+    fit = weighted_procrustes(jnp.asarray(model), jnp.asarray(mirrored), jnp.asarray(weights))
+    r = np.asarray(quat_to_matrix(fit.quaternion_wxyz))
+    assert np.all(np.asarray(fit.valid))
+    np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-12)
+    rot_ref, _ = _scipy_fit(model, mirrored, weights)  # scipy also returns proper rotations
+    np.testing.assert_allclose(r, rot_ref, atol=1e-9)
+
+
+def test_float32():
+    model, measured, weights = _random_case(30, 8, seed=9, occlusion=0.2, noise=0.0)
+    measured[..., :] -= np.nanmean(measured, axis=1, keepdims=True)  # O(0.1 m) like a tracker
+    fit = weighted_procrustes(
+        jnp.asarray(model, jnp.float32),
+        jnp.asarray(measured, jnp.float32),
+        jnp.asarray(weights, jnp.float32),
+    )
+    assert fit.quaternion_wxyz.dtype == jnp.float32 and bool(jnp.all(fit.valid))
+    rot_ref, pos_ref = _scipy_fit(model, measured, weights)
+    eps = float(np.finfo(np.float32).eps)
+    r = np.asarray(quat_to_matrix(fit.quaternion_wxyz), np.float64)
+    # eigenvector error ~ eps / relative eigen-gap (gap >= 0.05 for random constellations)
+    np.testing.assert_allclose(r, rot_ref, atol=200 * eps)
+    np.testing.assert_allclose(np.asarray(fit.position, np.float64), pos_ref, atol=200 * eps * 0.3)
+
+
+N_GRAD, M_GRAD = 3, 5
+PROBE = jnp.asarray(np.random.default_rng(1).normal(size=7))
+
+
+@jax.jit
+def _loss(model, meas, w):
+    fit = weighted_procrustes(model, meas, w)
+    q = jnp.where(fit.valid[:, None], fit.quaternion_wxyz, 0.0)
+    t = jnp.where(fit.valid[:, None], fit.position, 0.0)
+    rms = jnp.where(fit.valid, fit.rms, 0.0)
+    return jnp.sum(q @ PROBE[:4]) + jnp.sum(t * PROBE[4:]) + jnp.sum(rms)
+
+
+_grad = jax.jit(jax.grad(_loss, argnums=(1, 2)))
+
+
+def _central_difference(f, x, h):
+    g = np.zeros(x.size)
+    flat = x.reshape(-1)
+    for i in range(x.size):
+        up, down = flat.copy(), flat.copy()
+        up[i] += h
+        down[i] -= h
+        g[i] = (f(up.reshape(x.shape)) - f(down.reshape(x.shape))) / (2 * h)
+    return g.reshape(x.shape)
+
+
+def test_gradients_match_finite_differences_and_ignore_unseen():
+    model, measured, weights = _random_case(N_GRAD, M_GRAD, seed=21, occlusion=0.0, noise=1e-3)
+    weights[:, 3] = 0.0
+    measured[:, 3] = np.nan  # unseen LED: NaN must not leak into gradients
+    weights[2, 4] = 0.0  # zero weight, finite measurement
+    model_b = jnp.asarray(np.broadcast_to(model, measured.shape))
+    g_meas, g_w = _grad(model_b, jnp.asarray(measured), jnp.asarray(weights))
+    g_meas, g_w = np.asarray(g_meas), np.asarray(g_w)
+    assert np.all(np.isfinite(g_meas)) and np.all(np.isfinite(g_w))
+    np.testing.assert_array_equal(g_meas[:, 3], 0.0)
+    np.testing.assert_array_equal(g_meas[2, 4], 0.0)
+
+    meas0 = np.nan_to_num(measured)  # the NaN entries are masked by weight 0 anyway
+    fd_meas = _central_difference(
+        lambda x: float(_loss(model_b, jnp.asarray(x), jnp.asarray(weights))), meas0, 1e-6
+    )
+    fd_w = _central_difference(
+        lambda x: float(_loss(model_b, jnp.asarray(measured), jnp.asarray(x))), weights, 1e-6
+    )
+    fd_w[weights == 0] = g_w[weights == 0]  # one-sided at the boundary w = 0
+    np.testing.assert_allclose(g_meas, fd_meas, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(g_w, fd_w, rtol=1e-6, atol=1e-8)
+
+
+def test_gradient_of_perfect_fit_and_symmetric_constellation_is_finite():
+    # Square + apex: two lower eigenvalues of Horn's matrix coincide and rms = 0. JAX's
+    # own eigh JVP would give NaN here; ours only uses the gap to the top eigenvalue.
+    model = np.array([[0.1, 0, 0], [-0.1, 0, 0], [0, 0.1, 0], [0, -0.1, 0], [0, 0, 0.05]])
+    measured = model @ Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix().T + 1.0
+    measured = np.broadcast_to(measured, (N_GRAD, M_GRAD, 3))
+    model_b = jnp.asarray(np.broadcast_to(model, measured.shape))
+    g_meas, g_w = _grad(model_b, jnp.asarray(measured), jnp.ones((N_GRAD, M_GRAD)))
+    assert np.all(np.isfinite(np.asarray(g_meas))) and np.all(np.isfinite(np.asarray(g_w)))
+
+
+def test_gradient_through_invalid_frames_is_zero_not_nan():
+    model, measured, weights = _random_case(N_GRAD, M_GRAD, seed=4, occlusion=0.0)
+    weights[1, 2:] = 0.0  # two LEDs left
+    measured[1, 2:] = np.nan
+    line = np.linspace(0, 1, M_GRAD)[:, None]
+    measured[2] = line * [0.1, 0.2, 0.0]
+    model_b = np.broadcast_to(model, measured.shape).copy()
+    model_b[2] = line * [0.1, 0.2, 0.3]  # collinear constellation in frame 2
+    model_b = jnp.asarray(model_b)
+    g_meas, g_w = (
+        np.asarray(g) for g in _grad(model_b, jnp.asarray(measured), jnp.asarray(weights))
+    )
+    assert np.all(np.isfinite(g_meas)) and np.all(np.isfinite(g_w))
+    assert np.all(g_w[1:] == 0) and np.all(g_meas[1:] == 0)
+    assert np.any(g_w[0] != 0)
+
+
+@settings(max_examples=10, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    rotvec=st.lists(st.floats(-3.1, 3.1), min_size=3, max_size=3),
+    shift=st.lists(st.floats(-5, 5), min_size=3, max_size=3),
+)
+def test_property_equivariant_under_rigid_motion_of_measured(seed, rotvec, shift):
+    """Moving the measurement rigidly by (G, s) moves the fit by the same motion; rms equal."""
+    model, measured, weights = _random_case(4, 6, seed=seed % 10_000, occlusion=0.2)
+    g = Rotation.from_rotvec(rotvec)
+    moved = g.apply(measured.reshape(-1, 3)).reshape(measured.shape) + np.asarray(shift)
+    fit = weighted_procrustes(jnp.asarray(model), jnp.asarray(measured), jnp.asarray(weights))
+    fit2 = weighted_procrustes(jnp.asarray(model), jnp.asarray(moved), jnp.asarray(weights))
+    r = np.asarray(quat_to_matrix(fit.quaternion_wxyz))
+    r2 = np.asarray(quat_to_matrix(fit2.quaternion_wxyz))
+    np.testing.assert_allclose(r2, g.as_matrix() @ r, atol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(fit2.position), g.apply(np.array(fit.position)) + shift, atol=1e-10
+    )
+    np.testing.assert_allclose(np.asarray(fit2.rms), np.asarray(fit.rms), rtol=1e-6, atol=1e-13)
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale=st.floats(0.01, 100.0))
+def test_property_invariant_to_weight_scale_and_recovers_exact_pose(seed, scale):
+    model, measured, weights = _random_case(3, 6, seed=seed % 10_000, noise=0.0, occlusion=0.3)
+    a = weighted_procrustes(jnp.asarray(model), jnp.asarray(measured), jnp.asarray(weights))
+    b = weighted_procrustes(jnp.asarray(model), jnp.asarray(measured), jnp.asarray(weights * scale))
+    np.testing.assert_allclose(
+        np.asarray(a.quaternion_wxyz), np.asarray(b.quaternion_wxyz), atol=1e-12
+    )
+    assert np.all(np.asarray(a.rms) < 1e-12)
+
+
+def test_tracker_like_recording():
+    pos, constellation, rot, trans = tool_recording(50, 12, noise=0.0, occlusion=0.3, seed=8)
+    weights = np.isfinite(pos[..., 0]).astype(float)
+    fit = weighted_procrustes(jnp.asarray(constellation), jnp.asarray(pos), jnp.asarray(weights))
+    ok = np.asarray(fit.valid)
+    assert ok.mean() > 0.9
+    np.testing.assert_array_equal(ok, weights.sum(1) >= 3)
+    np.testing.assert_allclose(np.asarray(fit.position)[ok], trans[ok], atol=1e-12)
