@@ -42,10 +42,20 @@ def load_calibration(path: str | Path):
 
 
 def base_frame_poses(
-    rec: Recording, calibration, *, weighting: str = "led_noise", progress: bool | None = None
+    rec: Recording,
+    calibration,
+    *,
+    weighting: str = "led_noise",
+    tcp: str = "nominal",
+    progress: bool | None = None,
 ) -> BaseFramePoses:
     """Per-frame base←tool = (camera←base)⁻¹ · camera←tool, the camera-frame poses fitted
     with the calibration's constellation (so the tool frame is the calibration's).
+
+    `tcp="nominal"` (default) reports the pose of the TCP the robot controller knows,
+    `/tool/flange_from_tool`, carried by the measured flange: base←flange · nominal
+    flange←tool. That is what ISO 9283 and path deviation judge (the robot, not the
+    tool mount); `tcp="calibrated"` reports the calibrated tool frame itself.
 
     A calibrated `tracker_scale` is divided out of the measurements first; a calibrated
     `thermal_drift` is applied per frame from `/tracker/temperature`.
@@ -69,6 +79,17 @@ def base_frame_poses(
     q_bc = jnp.broadcast_to(quat_conjugate(jnp.asarray(cfb.quaternion_wxyz)), (n, 4))
     q = np.asarray(quat_multiply(q_bc, jnp.asarray(np.nan_to_num(est.quaternion_wxyz))))
     p = np.asarray(quat_rotate(q_bc, jnp.asarray(np.nan_to_num(est.position) - t_cb)))
+    if tcp == "nominal" and rec.tool is not None and rec.tool.flange_from_tool is not None:
+        # tool_cal → flange → tcp_nominal: constant correction on the right
+        nom, cal = rec.tool.flange_from_tool, calibration.flange_from_tool
+        q_cal_inv = quat_conjugate(jnp.asarray(cal.quaternion_wxyz))
+        q_c = quat_multiply(q_cal_inv, jnp.asarray(nom.quaternion_wxyz))
+        t_c = quat_rotate(q_cal_inv, jnp.asarray(nom.position - cal.position))
+        qj = jnp.asarray(q)
+        p = p + np.asarray(quat_rotate(qj, jnp.broadcast_to(t_c, p.shape)))
+        q = np.asarray(quat_multiply(qj, jnp.broadcast_to(q_c, q.shape)))
+    elif tcp not in ("nominal", "calibrated"):
+        raise UserError(f"tcp must be 'nominal' or 'calibrated', got {tcp!r}")
     valid = est.valid
     q = np.where(valid[:, None], q, np.nan)
     p = np.where(valid[:, None], p, np.nan)
