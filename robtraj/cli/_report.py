@@ -1,0 +1,55 @@
+"""`robtraj report`: the HTML report of a recording."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .._errors import UserError
+from . import _analysis_inputs
+
+
+def register(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "report",
+        help="HTML report: ISO table, path, deviation, speed, LEDs, pose quality",
+        description=(
+            "Write DIR/report.html with legible PNGs, and measured/commanded trajectories in "
+            "the TUM format (for evo). Without --calibration the recording calibrates itself."
+        ),
+    )
+    _analysis_inputs.add_arguments(p, calibration_required=False)
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..analysis import write_tum
+    from ..report._recording_report import recording_report
+    from ._deviation import deviation_of
+    from ._iso9283 import iso_of
+
+    rec, calib, bf = _analysis_inputs.load(args)
+    out = Path(args.out)
+    ref = dev = iso = None
+    notes = []
+    try:
+        ref, dev = deviation_of(rec, bf)
+    except UserError as e:
+        notes.append(f"path deviation skipped: {e}")
+    try:
+        iso = iso_of(rec, bf)
+    except UserError as e:
+        notes.append(f"ISO 9283 skipped: {e}")
+    path = recording_report(
+        out, rec, calib, bf, deviation=dev, reference=ref, iso=iso, name=Path(args.recording).name
+    )
+    v = bf.valid
+    write_tum(out / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
+    if dev is not None:
+        write_tum(out / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
+    for n in notes:
+        print(f"note: {n}")
+    print(f"report: {path}")
+    return 0
