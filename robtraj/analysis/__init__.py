@@ -1,0 +1,23 @@
+"""Analysis of measured trajectories: path deviation, ISO 9283 characteristics, TUM export."""
+
+from ._ape import absolute_pose_error as absolute_pose_error
+from ._iso_path import (
+    CornerCharacteristics as CornerCharacteristics,
+    PathCharacteristics as PathCharacteristics,
+)
+from ._quat import error_components as error_components, rotation_angle as rotation_angle
+from .deviation import (
+    DeviationResult as DeviationResult,
+    DeviationSummary as DeviationSummary,
+    ReferencePath as ReferencePath,
+    commanded_path as commanded_path,
+    path_deviation as path_deviation,
+    point_segment as point_segment,
+)
+from .iso9283 import (
+    DistanceCharacteristics as DistanceCharacteristics,
+    Iso9283Result as Iso9283Result,
+    PoseCharacteristics as PoseCharacteristics,
+    iso9283 as iso9283,
+)
+from .tum import write_tum as write_tum

@@ -1,0 +1,411 @@
+"""Path deviation of a measured TCP trajectory from the commanded path (paper section 4).
+
+The commanded path is sampled densely (`commanded_path`); every measured point is
+matched to its nearest reference samples with a k-d tree, the exact point-to-segment
+distance (paper eq. 6) is taken on the intervals next to each candidate sample, and the
+match is made *monotone in path progress* with a dynamic programme over the candidates,
+so that a path that crosses itself or runs parallel to itself is not matched to the
+wrong pass. The orientation at the foot point is slerped between the neighbouring
+reference samples and compared by the single rotation angle (paper eq. 1–2).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Float
+from scipy.spatial import cKDTree
+
+from .._errors import UserError
+from ..recording import Program
+from ._quat import quat_conjugate, quat_multiply, rotation_angle, slerp
+
+_EPS_LENGTH = 1e-12  # [m] intervals shorter than this are pure reorientations
+_JUMP_MARGIN = 1e-6  # [m] a jump's nearest neighbour must be nearer than this
+_SCAN_BLOCK = 1 << 15  # frames per compiled block of the monotone matching
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferencePath:
+    """The commanded TCP path, sampled; interval `r` joins samples `r` and `r + 1`.
+
+    - `position` `(R, 3)` [m] and `quaternion_wxyz` `(R, 4)`: samples in the base frame.
+    - `progress` `(R,)` [m]: cumulative path length `s` at each sample.
+    - `interval_target` `(R-1,)`: program target index approached along each interval.
+    - `interval_on_path` `(R-1,)`: True where the interval belongs to a "linear" move
+      (a path the robot is meant to follow); False for "joint" moves, whose real TCP
+      path is not a straight line, so deviations there are not path errors.
+    """
+
+    position: np.ndarray
+    quaternion_wxyz: np.ndarray
+    progress: np.ndarray
+    interval_target: np.ndarray
+    interval_on_path: np.ndarray
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.position.shape[0])
+
+
+def commanded_path(program: Program, spacing: float) -> ReferencePath:
+    """Sample the commanded TCP path of `program` every `spacing` metres (or closer).
+
+    Consecutive targets are joined by straight lines with the orientation slerped along
+    each move, the end points of each move are samples, and a move that only reorients
+    (zero length) is one interval. Choose `spacing` at most half the distance the robot
+    travels between two measurements (the paper asks for at least twice the density).
+
+    **Arguments:**
+
+    - `program`: the `Program`; `motion[j]` ("linear" or "joint") says how the robot
+      moves from target `j-1` to target `j`; `motion[0]` is "start".
+    - `spacing`: [m] largest distance between neighbouring samples, > 0.
+
+    **Returns:** a `ReferencePath`.
+    """
+    pos = np.asarray(program.targets.position, np.float64)
+    quat = np.asarray(program.targets.quaternion_wxyz, np.float64)
+    if pos.ndim != 2 or pos.shape[0] < 2:
+        raise UserError(
+            f"the program has {0 if pos.ndim != 2 else pos.shape[0]} target(s); "
+            "a commanded path needs at least two"
+        )
+    if not spacing > 0:
+        raise UserError(f"path sampling spacing must be > 0 m, got {spacing!r}")
+    motion = np.asarray(program.motion).astype(str)
+    a, b = pos[:-1], pos[1:]
+    length = np.linalg.norm(b - a, axis=1)
+    n = np.maximum(1, np.ceil(length / spacing)).astype(np.int64)  # intervals per move
+    seg = np.repeat(np.arange(len(n)), n)  # move index of each interval
+    k = np.arange(seg.size) - np.repeat(np.cumsum(n) - n, n)
+    t = k / n[seg]
+    position = np.concatenate([a[seg] + t[:, None] * (b - a)[seg], pos[-1:]])
+    q0, q1 = quat[:-1][seg], quat[1:][seg]
+    # make consecutive targets use the same hemisphere so the samples are continuous
+    quaternion = np.concatenate([slerp(q0, q1, t), quat[-1:]])
+    flip = np.sum(quaternion[1:] * quaternion[:-1], axis=1) < 0
+    sign = np.concatenate([[1.0], np.where(np.cumsum(flip) % 2 == 1, -1.0, 1.0)])
+    quaternion = quaternion * sign[:, None]
+    progress = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(position, axis=0), axis=1))])
+    target = seg + 1
+    on_path = motion[target] == "linear"
+    return ReferencePath(position, quaternion, progress, target, on_path)
+
+
+@dataclasses.dataclass(frozen=True)
+class DeviationSummary:
+    """Max, mean and RMS of the distance [m] and orientation error [rad] over `n` frames."""
+
+    n: int
+    distance_max: float
+    distance_mean: float
+    distance_rms: float
+    orientation_max: float
+    orientation_mean: float
+    orientation_rms: float
+
+    def to_json(self) -> dict[str, Any]:
+        """Values in mm and degrees, keys with the unit."""
+        return {
+            "n_frames": self.n,
+            "distance_max_mm": self.distance_max * 1e3,
+            "distance_mean_mm": self.distance_mean * 1e3,
+            "distance_rms_mm": self.distance_rms * 1e3,
+            "orientation_max_deg": float(np.degrees(self.orientation_max)),
+            "orientation_mean_deg": float(np.degrees(self.orientation_mean)),
+            "orientation_rms_deg": float(np.degrees(self.orientation_rms)),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class DeviationResult:
+    """Per-frame deviation of the measured path from a `ReferencePath` (NaN: frame unseen).
+
+    - `distance` `(N,)` [m]: point-to-path distance (paper eq. 6).
+    - `orientation_error` `(N,)` [rad]: single rotation angle to the slerped foot orientation.
+    - `deviation` `(N, 3)` [m]: measured position minus foot point.
+    - `foot` `(N, 3)`, `foot_quaternion_wxyz` `(N, 4)`: matched point on the commanded path.
+    - `progress` `(N,)` [m]: path progress `s` of the foot point.
+    - `interval` `(N,)`: matched reference interval (-1 for unseen frames).
+    - `target` `(N,)`: program target index approached there (-1 for unseen frames).
+    - `on_path` `(N,)`: matched to a "linear" move (deviation is a path error there).
+    - `jumped` `(N,)`: the unconstrained nearest neighbour lies on another pass of the path
+      (more than `jump_tolerance` away in progress) than the monotone match, and is nearer
+      (by more than 1 µm; passes that repeat the same geometry are not jumps).
+    - `held` `(N,)`: no admissible candidate was within `outlier_distance`; the frame
+      keeps the previous frame's match.
+    """
+
+    distance: np.ndarray
+    orientation_error: np.ndarray
+    deviation: np.ndarray
+    foot: np.ndarray
+    foot_quaternion_wxyz: np.ndarray
+    progress: np.ndarray
+    interval: np.ndarray
+    target: np.ndarray
+    on_path: np.ndarray
+    jumped: np.ndarray
+    held: np.ndarray
+
+    def summary(self, *, include_joint_moves: bool = False) -> DeviationSummary:
+        """Max/mean/RMS over the seen frames on "linear" moves (all moves if asked)."""
+        use = np.isfinite(self.distance)
+        if not include_joint_moves:
+            use &= self.on_path
+        d, e = self.distance[use], self.orientation_error[use]
+        if d.size == 0:
+            raise UserError("no measured frame lies on a path segment of the program")
+        return DeviationSummary(
+            n=int(d.size),
+            distance_max=float(d.max()),
+            distance_mean=float(d.mean()),
+            distance_rms=float(np.sqrt(np.mean(d**2))),
+            orientation_max=float(e.max()),
+            orientation_mean=float(e.mean()),
+            orientation_rms=float(np.sqrt(np.mean(e**2))),
+        )
+
+
+def point_segment(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Foot parameter `t ∈ [0, 1]` and distance of `point` to segment `a`–`b` (paper eq. 6).
+
+    The foot point is `a + t (b - a)`: the intersection of the segment's line with the
+    plane through `point` normal to `n = b - a`, clamped to the segment. Broadcasts over
+    leading axes; a degenerate segment gives `t = 0`.
+    """
+    n = b - a
+    nn = np.sum(n * n, axis=-1)
+    t = np.sum((point - a) * n, axis=-1) / np.where(nn > _EPS_LENGTH**2, nn, 1.0)
+    t = np.clip(np.where(nn > _EPS_LENGTH**2, t, 0.0), 0.0, 1.0)
+    foot = a + t[..., None] * n
+    return t, np.linalg.norm(point - foot, axis=-1)
+
+
+def path_deviation(
+    reference: ReferencePath,
+    measured_position: Float[np.ndarray, "frames 3"],
+    measured_quaternion_wxyz: Float[np.ndarray, "frames 4"],
+    *,
+    monotone: bool = True,
+    k: int = 4,
+    outlier_distance: float = 0.05,
+    backtrack: float = 1.0,
+    jump_tolerance: float | None = None,
+    window: int | None = None,
+    chunk: int = 1 << 16,
+) -> DeviationResult:
+    """Match every measured pose to the commanded path and measure the deviation.
+
+    **Arguments:**
+
+    - `reference`: from `commanded_path`, sampled ≥ 2× as densely as the measurement.
+    - `measured_position` `(N, 3)` [m], `measured_quaternion_wxyz` `(N, 4)`: measured TCP
+      poses in the base frame, in time order; NaN rows (unseen frames) give NaN results.
+    - `monotone`: constrain the match to be non-decreasing in path progress (the robot
+      may dwell, not go back): each frame searches a forward window of intervals after
+      the previous frame's match, so another pass of the path (a crossing, a parallel
+      line, the next cycle) is never taken. Without it every frame takes its nearest
+      interval among the k-d-tree candidates.
+    - `k`: reference samples queried per frame in the k-d tree; each contributes its
+      better adjacent interval as a candidate (unconstrained match, `jumped`, start and
+      re-acquisition of the monotone match).
+    - `outlier_distance`: [m] when the nearest interval in the forward window is farther
+      than this, the nearest candidates ahead re-acquire the path; if none is nearer than
+      this either, the frame keeps the previous match (`held`).
+    - `backtrack`: tolerated step back, in reference intervals (noise at a dwell can move
+      the foot point slightly backwards).
+    - `jump_tolerance`: [m] progress difference above which the unconstrained nearest
+      neighbour counts as a jump to another pass; default 5 reference spacings.
+    - `window`: intervals searched ahead of the previous match; default: enough for the
+      largest step between two frames (at least 16).
+    - `chunk`: frames per k-d-tree query batch (bounds the memory).
+
+    **Returns:** a `DeviationResult`.
+    """
+    pos = np.asarray(measured_position, np.float64)
+    quat = np.asarray(measured_quaternion_wxyz, np.float64)
+    if pos.shape[0] != quat.shape[0]:
+        raise UserError(f"{pos.shape[0]} measured positions but {quat.shape[0]} orientations")
+    n_frames = pos.shape[0]
+    ref_p = reference.position
+    n_int = ref_p.shape[0] - 1
+    k = int(min(k, ref_p.shape[0]))
+    seen = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(quat), axis=1)
+    idx_seen = np.flatnonzero(seen)
+    p = pos[idx_seen]
+
+    # candidates: each of the k nearest samples proposes its better adjacent interval
+    tree = cKDTree(ref_p)
+    cand = np.empty((p.shape[0], k), np.int64)
+    cand_t = np.empty((p.shape[0], k))
+    cand_d = np.empty((p.shape[0], k))
+    for lo in range(0, p.shape[0], chunk):
+        pc = p[lo : lo + chunk]
+        _, nearest = tree.query(pc, k=k, workers=-1)
+        nearest = nearest.reshape(pc.shape[0], k)
+        before = np.clip(nearest - 1, 0, n_int - 1)
+        after = np.clip(nearest, 0, n_int - 1)
+        tb, db = point_segment(pc[:, None], ref_p[before], ref_p[before + 1])
+        ta, da = point_segment(pc[:, None], ref_p[after], ref_p[after + 1])
+        use_after = da <= db
+        cand[lo : lo + chunk] = np.where(use_after, after, before)
+        cand_t[lo : lo + chunk] = np.where(use_after, ta, tb)
+        cand_d[lo : lo + chunk] = np.where(use_after, da, db)
+
+    u = cand + cand_t  # fractional interval index: monotone in path progress
+    best_free = np.argmin(cand_d, axis=1)
+    rows = np.arange(p.shape[0])
+    held = np.zeros(p.shape[0], bool)
+    if monotone and p.shape[0] > 0:
+        if window is None:
+            step = np.linalg.norm(np.diff(p, axis=0), axis=1).max(initial=0.0)
+            spacing = float(np.median(np.diff(reference.progress))) if n_int else 1.0
+            window = int(max(16, np.ceil(2.0 * step / max(spacing, 1e-12)) + 8))
+        chosen_u, held = _track(reference, p, u, cand_d, outlier_distance, backtrack, window)
+    else:
+        chosen_u = u[rows, best_free]
+    interval = np.clip(np.floor(chosen_u).astype(np.int64), 0, n_int - 1)
+
+    # exact foot point on the chosen interval; reorientations in place project by angle
+    a, b = ref_p[interval], ref_p[interval + 1]
+    t, dist = point_segment(p, a, b)
+    qa, qb = reference.quaternion_wxyz[interval], reference.quaternion_wxyz[interval + 1]
+    degenerate = np.sum((b - a) ** 2, axis=1) <= _EPS_LENGTH**2
+    if np.any(degenerate):
+        t = np.where(degenerate, _project_on_arc(qa, qb, quat[idx_seen]), t)
+    foot = a + t[:, None] * (b - a)
+    foot_q = slerp(qa, qb, t)
+    s_ref = reference.progress
+    progress = s_ref[interval] + t * (s_ref[interval + 1] - s_ref[interval])
+    err = rotation_angle(foot_q, quat[idx_seen])
+
+    free_int = np.clip(cand[rows, best_free], 0, n_int - 1)
+    free_s = s_ref[free_int] + cand_t[rows, best_free] * (s_ref[free_int + 1] - s_ref[free_int])
+    if jump_tolerance is None:
+        jump_tolerance = 5.0 * float(np.median(np.diff(s_ref))) if n_int else 0.0
+    # another pass that is really nearer (repeated identical passes are equally near)
+    free_d = cand_d[rows, best_free]
+    jumped = (np.abs(free_s - progress) > jump_tolerance) & (free_d < dist - _JUMP_MARGIN)
+
+    def full(values: np.ndarray, fill: Any) -> np.ndarray:
+        out = np.full((n_frames, *values.shape[1:]), fill, dtype=values.dtype)
+        out[idx_seen] = values
+        return out
+
+    return DeviationResult(
+        distance=full(dist, np.nan),
+        orientation_error=full(err, np.nan),
+        deviation=full(p - foot, np.nan),
+        foot=full(foot, np.nan),
+        foot_quaternion_wxyz=full(foot_q, np.nan),
+        progress=full(progress, np.nan),
+        interval=full(interval, -1),
+        target=full(reference.interval_target[interval], -1),
+        on_path=full(reference.interval_on_path[interval], False),
+        jumped=full(jumped, False),
+        held=full(held, False),
+    )
+
+
+def _project_on_arc(qa: np.ndarray, qb: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Slerp parameter of the point on the arc `qa → qb` closest to `q` (in-place turns)."""
+    rel_ab = quat_multiply(quat_conjugate(qa), qb)
+    rel_aq = quat_multiply(quat_conjugate(qa), q)
+    rel_ab = rel_ab * np.sign(rel_ab[:, :1] + (rel_ab[:, :1] == 0))
+    rel_aq = rel_aq * np.sign(rel_aq[:, :1] + (rel_aq[:, :1] == 0))
+    rv_ab = _log(rel_ab)
+    rv_aq = _log(rel_aq)
+    theta2 = np.sum(rv_ab**2, axis=1)
+    t = np.sum(rv_ab * rv_aq, axis=1) / np.where(theta2 > 0, theta2, 1.0)
+    return np.clip(np.where(theta2 > 0, t, 0.0), 0.0, 1.0)
+
+
+def _log(q: np.ndarray) -> np.ndarray:
+    v = np.linalg.norm(q[:, 1:], axis=1)
+    angle = 2.0 * np.arctan2(v, q[:, 0])
+    scale = np.where(v > 1e-15, angle / np.where(v > 1e-15, v, 1.0), 2.0)
+    return q[:, 1:] * scale[:, None]
+
+
+def _track(
+    reference: ReferencePath,
+    p: np.ndarray,
+    cand_u: np.ndarray,
+    cand_d: np.ndarray,
+    outlier: float,
+    backtrack: float,
+    window: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fractional interval index per frame, non-decreasing up to `backtrack` (dwell allowed).
+
+    Each frame searches the intervals `[⌊u⌋ - backtrack, ⌊u⌋ + window)` ahead of the previous
+    match for the nearest one; when even that is farther than `outlier`, the k-d-tree
+    candidates ahead of the previous match re-acquire the path (the earliest of the
+    nearly-nearest ones), else the frame keeps the previous match (`held`).
+    """
+    n_int = reference.position.shape[0] - 1
+    b = int(np.ceil(backtrack))
+    # a multiple of 8 (few distinct shapes, few compilations), at most the whole path
+    width = int(min(8 * np.ceil((window + b + 1) / 8), n_int))
+    ref = jnp.asarray(reference.position)
+    # fixed-size blocks of frames (one compilation for any N), the last one padded by
+    # repeating its final frame; the match carries over from block to block
+    block = _SCAN_BLOCK
+    n = p.shape[0]
+    pad = (-n) % block
+    p_ = np.concatenate([p, np.repeat(p[-1:], pad, axis=0)])
+    cu_ = np.concatenate([cand_u, np.repeat(cand_u[-1:], pad, axis=0)])
+    cd_ = np.concatenate([cand_d, np.repeat(cand_d[-1:], pad, axis=0)])
+    u_prev = jnp.asarray(0.0)  # the path's start; if the first frame is far, re-acquire
+    us, helds = [], []
+    for lo in range(0, n + pad, block):
+        sl = slice(lo, lo + block)
+        u_prev, u, held = _track_scan(
+            ref, p_[sl], cu_[sl], cd_[sl], u_prev, outlier, float(backtrack), b, width
+        )
+        us.append(u)
+        helds.append(held)
+    return np.concatenate(us)[:n], np.concatenate(helds)[:n]
+
+
+@functools.partial(jax.jit, static_argnums=(7, 8))
+def _track_scan(ref, p, cand_u, cand_d, u0, outlier, backtrack, b, width):
+    n_int = ref.shape[0] - 1
+    offsets = jnp.arange(width)
+
+    def nearest_in_window(u_prev, x):
+        lo = jnp.clip(jnp.floor(u_prev).astype(jnp.int32) - b, 0, n_int - width)
+        a = jax.lax.dynamic_slice_in_dim(ref, lo, width + 1)
+        seg_a, seg_b = a[:-1], a[1:]
+        n = seg_b - seg_a
+        nn = jnp.sum(n * n, axis=-1)
+        ok = nn > _EPS_LENGTH**2
+        t = jnp.sum((x - seg_a) * n, axis=-1) / jnp.where(ok, nn, 1.0)
+        t = jnp.clip(jnp.where(ok, t, 0.0), 0.0, 1.0)
+        d = jnp.linalg.norm(x - seg_a - t[:, None] * n, axis=-1)
+        u = lo + offsets + t
+        d = jnp.where(u >= u_prev - backtrack, d, jnp.inf)
+        j = jnp.argmin(d)
+        return u[j], d[j]
+
+    def step(u_prev, inputs):
+        x, cu, cd = inputs
+        u_w, d_w = nearest_in_window(u_prev, x)
+        ahead = cu >= u_prev - backtrack
+        d_ahead = jnp.where(ahead, cd, jnp.inf)
+        near = ahead & (cd <= jnp.min(d_ahead) + 0.5 * outlier)
+        u_k = jnp.min(jnp.where(near, cu, jnp.inf))
+        reacquire = (d_w > outlier) & (jnp.min(d_ahead) <= outlier)
+        lost = (d_w > outlier) & ~reacquire
+        u_new = jnp.where(reacquire, u_k, jnp.where(lost, u_prev, u_w))
+        return u_new, (u_new, lost)
+
+    u_last, (u, held) = jax.lax.scan(step, jnp.asarray(u0, p.dtype), (p, cand_u, cand_d))
+    return u_last, u, held

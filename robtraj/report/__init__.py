@@ -1,0 +1,15 @@
+"""Figures (PNG, matplotlib Agg) and the HTML report; the only place that imports matplotlib."""
+
+from ._figures import (
+    deviation_figure as deviation_figure,
+    path_3d_figure as path_3d_figure,
+    pose_quality_figure as pose_quality_figure,
+    velocity_figure as velocity_figure,
+    visibility_figure as visibility_figure,
+)
+from ._html import (
+    Section as Section,
+    Table as Table,
+    iso_tables as iso_tables,
+    write_report as write_report,
+)

@@ -1,0 +1,159 @@
+"""Report figures: arrays in, one legible PNG out (matplotlib, Agg). SI in, mm/µm/° on axes."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+_DPI = 110
+
+
+def _save(fig, path: str | os.PathLike) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=_DPI)
+    plt.close(fig)
+    return path
+
+
+def path_3d_figure(
+    path: str | os.PathLike,
+    position: np.ndarray,
+    distance: np.ndarray,
+    *,
+    reference: np.ndarray | None = None,
+    title: str = "Measured TCP path, coloured by deviation from the commanded path",
+) -> Path:
+    """3D measured path `(N, 3)` [m] coloured by its deviation `(N,)` [m] (shown in mm),
+    with the commanded path `reference` `(R, 3)` [m] as a thin line."""
+    fig = plt.figure(figsize=(8, 7), constrained_layout=True)
+    ax = fig.add_subplot(projection="3d")
+    if reference is not None:
+        ax.plot(*(np.asarray(reference) * 1e3).T, color="0.6", lw=0.8, label="commanded")
+    ok = np.all(np.isfinite(position), axis=1) & np.isfinite(distance)
+    sc = ax.scatter(*(position[ok] * 1e3).T, c=distance[ok] * 1e3, s=2, cmap="viridis")
+    fig.colorbar(sc, ax=ax, shrink=0.7, label="deviation [mm]")
+    ax.set_xlabel("x [mm]")
+    ax.set_ylabel("y [mm]")
+    ax.set_zlabel("z [mm]")
+    ax.set_title(title)
+    if reference is not None:
+        ax.legend(loc="upper left")
+    return _save(fig, path)
+
+
+def deviation_figure(
+    path: str | os.PathLike,
+    progress: np.ndarray,
+    distance: np.ndarray,
+    orientation_error: np.ndarray,
+    *,
+    on_path: np.ndarray | None = None,
+    title: str = "Deviation from the commanded path",
+) -> Path:
+    """Distance [m → mm] and orientation error [rad → °] against path progress [m → mm];
+    frames off the path (joint moves, `on_path` False) in grey."""
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(10, 6), sharex=True, constrained_layout=True)
+    s = progress * 1e3
+    use = np.ones_like(s, bool) if on_path is None else np.asarray(on_path, bool)
+    for ax, v, label in [
+        (a0, distance * 1e3, "distance [mm]"),
+        (a1, np.degrees(orientation_error), "orientation error [°]"),
+    ]:
+        ax.plot(s[~use], v[~use], ".", ms=1, color="0.7", label="joint moves")
+        ax.plot(s[use], v[use], ".", ms=1, color="C0", label="path")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    a0.set_title(title)
+    a1.set_xlabel("path progress s [mm]")
+    if not use.all():
+        a0.legend(markerscale=8)
+    return _save(fig, path)
+
+
+def velocity_figure(
+    path: str | os.PathLike,
+    time: np.ndarray,
+    speed: np.ndarray,
+    *,
+    commanded: np.ndarray | None = None,
+    title: str = "TCP speed",
+) -> Path:
+    """Measured TCP speed `(N,)` [m/s → mm/s] over time [s], with the commanded speed."""
+    fig, ax = plt.subplots(figsize=(10, 4), constrained_layout=True)
+    t = time - time[0]
+    ax.plot(t, speed * 1e3, lw=0.7, label="measured")
+    if commanded is not None:
+        ax.plot(t, np.asarray(commanded) * 1e3, lw=1.0, ls="--", color="C3", label="commanded")
+        ax.legend()
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("speed [mm/s]")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    return _save(fig, path)
+
+
+def visibility_figure(
+    path: str | os.PathLike,
+    time: np.ndarray,
+    visible: np.ndarray,
+    *,
+    led_ids: np.ndarray | None = None,
+    variance: np.ndarray | None = None,
+    title: str = "LEDs seen by the camera (black) over time",
+) -> Path:
+    """Paper Fig. 3: visibility image `(N, M)` (LED vs time) and, if given, the LED variance
+    `(N, M)` [m²] of the three LEDs whose visibility changes most, as a std in µm."""
+    t = time - time[0]
+    m = visible.shape[1]
+    ids = np.arange(m) if led_ids is None else np.asarray(led_ids)
+    rows = 2 if variance is not None else 1
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 3.5 * rows), sharex=True,
+                             constrained_layout=True, squeeze=False)  # fmt: skip
+    a0 = axes[0, 0]
+    a0.imshow(np.asarray(visible, float).T, aspect="auto", interpolation="nearest",
+              cmap="Greys", vmin=0, vmax=1, extent=(t[0], t[-1], m + 0.5, 0.5))  # fmt: skip
+    step = max(1, m // 24)
+    a0.set_yticks(np.arange(1, m + 1)[::step], [str(i) for i in ids[::step]], fontsize=7)
+    a0.set_ylabel("LED id")
+    a0.set_title(title)
+    if variance is not None:
+        a1 = axes[1, 0]
+        changes = np.abs(np.diff(np.asarray(visible, int), axis=0)).sum(0)
+        for k in np.argsort(-(changes + 1e-3 * visible.sum(0)))[:3]:
+            with np.errstate(invalid="ignore"):
+                a1.semilogy(t, np.sqrt(variance[:, k]) * 1e6, lw=0.8, label=f"LED {ids[k]}")
+        a1.set_ylabel("LED variance, as std [µm]")
+        a1.set_title("LED variance")
+        a1.legend()
+        a1.grid(True, which="both", alpha=0.3)
+    axes[-1, 0].set_xlabel("time [s]")
+    return _save(fig, path)
+
+
+def pose_quality_figure(
+    path: str | os.PathLike,
+    time: np.ndarray,
+    rms: np.ndarray,
+    n_used: np.ndarray,
+    *,
+    title: str = "Pose fit quality over time",
+) -> Path:
+    """Per-frame RMS residual of the pose fit `(N,)` [m → µm] and LEDs used `(N,)`."""
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True, constrained_layout=True)
+    t = time - time[0]
+    a0.plot(t, rms * 1e6, lw=0.6)
+    a0.set_ylabel("fit RMS [µm]")
+    a0.set_title(title)
+    a1.step(t, n_used, where="mid", lw=0.6, color="C2")
+    a1.set_ylabel("LEDs used")
+    a1.set_xlabel("time [s]")
+    for a in (a0, a1):
+        a.grid(True, alpha=0.3)
+    return _save(fig, path)

@@ -1,0 +1,177 @@
+"""ISO 9283 characteristics against a direct NumPy implementation of the standard's formulas,
+on a synthetic cube test with known injected errors."""
+
+import json
+
+import numpy as np
+import pytest
+from _synthetic import attained, cube_program, trajectory
+from scipy.spatial.transform import Rotation
+
+import robtraj
+from robtraj.analysis import iso9283
+from robtraj.recording import Pose, Program
+
+CYCLES, PATH_CYCLES = 30, 6
+OFFSET = np.array([0.8e-3, -0.5e-3, 0.3e-3])  # [m] constant pose error
+SIGMA = 0.1e-3  # [m] per-axis scatter per cycle
+ROT_OFFSET = np.array([1e-3, -0.5e-3, 0.0])  # [rad] constant orientation error (base frame)
+ROT_SIGMA = 2e-4  # [rad]
+
+
+@pytest.fixture(scope="module")
+def cube():
+    rng = np.random.default_rng(7)
+    prog, dwell = cube_program(CYCLES, PATH_CYCLES)
+    pos, q = attained(prog, OFFSET, SIGMA, ROT_OFFSET, ROT_SIGMA, rng)
+    t, p, qq, seg = trajectory(prog, pos, q, dwell, speed_scale=0.95)
+    res = iso9283(prog, t, p, qq, segment=seg)
+    return prog, dwell, pos, q, res
+
+
+def rp_direct(x):
+    """ISO 9283 §7.2.2 written out: l_j = |x_j − x̄|, RP = l̄ + 3·sqrt(Σ(l_j − l̄)²/(n−1))."""
+    bary = x.mean(axis=0)
+    l = np.sqrt(((x - bary) ** 2).sum(axis=1))
+    return l.mean() + 3.0 * np.sqrt(((l - l.mean()) ** 2).sum() / (len(l) - 1))
+
+
+def test_pose_accuracy_and_repeatability(cube):
+    prog, dwell, pos, q, res = cube
+    tp = prog.targets.position
+    assert len(res.poses) == 5
+    for pose in res.poses:
+        same = np.flatnonzero(np.all(np.isclose(tp, pose.commanded_position), axis=1) & dwell)
+        same = same[same > 0]  # the start target is not attained by a move
+        x = pos[same]  # what the robot attained at that pose, cycle by cycle
+        q_att = q[same]
+        assert pose.n_cycles == CYCLES == x.shape[0]
+        # AP: barycentre minus command, formula by formula
+        ap = x.mean(axis=0) - pose.commanded_position
+        assert np.allclose(pose.AP_xyz, ap, atol=1e-12)
+        assert np.isclose(pose.AP, np.sqrt((ap**2).sum()), atol=1e-12)
+        assert np.isclose(pose.RP, rp_direct(x), atol=1e-12)
+        # AP equals the injected constant offset within its sampling error σ/√n (4σ bound)
+        assert np.all(np.abs(pose.AP_xyz - OFFSET) < 4 * SIGMA / np.sqrt(CYCLES))
+        # orientation: a, b, c of R_att·R_cmdᵀ; mean = APa.., 3·S = RPa..
+        abc = (
+            Rotation.from_quat(q_att[:, [1, 2, 3, 0]])
+            * Rotation.from_quat(pose.commanded_quaternion_wxyz[[1, 2, 3, 0]]).inv()
+        ).as_euler("xyz")
+        assert np.allclose(pose.AP_abc, abc.mean(axis=0), atol=1e-12)
+        assert np.allclose(pose.RP_abc, 3 * abc.std(axis=0, ddof=1), atol=1e-12)
+        assert np.all(np.abs(pose.AP_abc - ROT_OFFSET) < 4 * ROT_SIGMA / np.sqrt(CYCLES) + 1e-6)
+        assert np.isclose(pose.AP_angle, np.linalg.norm(ROT_OFFSET), atol=4 * ROT_SIGMA)
+
+
+def test_rp_matches_injected_scatter():
+    """RP over many poses vs its sampling distribution for n = 30 cycles of N(0, σ²I)."""
+    rng = np.random.default_rng(3)
+    sims = np.array([rp_direct(rng.normal(0, SIGMA, (CYCLES, 3))) for _ in range(4000)])
+    expected, spread = sims.mean(), sims.std()
+    # true value: l ~ σ·χ₃, mean 2σ√(2/π), sd σ√(3 − 8/π); the estimator's bias is small
+    true_rp = SIGMA * (2 * np.sqrt(2 / np.pi) + 3 * np.sqrt(3 - 8 / np.pi))
+    assert abs(expected - true_rp) < 0.1 * true_rp
+    prog, dwell = cube_program(CYCLES, 0)
+    rps = []
+    for seed in range(3):
+        pos, q = attained(prog, OFFSET, SIGMA, ROT_OFFSET, 0.0, np.random.default_rng(seed))
+        t, p, qq, seg = trajectory(prog, pos, q, dwell)
+        rps += [pose.RP for pose in iso9283(prog, t, p, qq, segment=seg).poses]
+    # 15 RP values, each with the spread above: their mean is within 4·spread/√15
+    assert abs(np.mean(rps) - expected) < 4 * spread / np.sqrt(len(rps))
+
+
+def test_distance_accuracy(cube):
+    prog, dwell, pos, q, res = cube
+    tp = prog.targets.position
+    assert len(res.distances) == 5
+    for d in res.distances:
+        # consecutive pose-test targets with the commanded distance of this pair
+        js = [j for j in range(2, len(tp)) if dwell[j] and dwell[j - 1]
+              and np.isclose(np.linalg.norm(tp[j] - tp[j - 1]), d.commanded)]  # fmt: skip
+        pairs = {}
+        for j in js:
+            pairs.setdefault((tuple(tp[j - 1]), tuple(tp[j])), []).append(j)
+        for js_pair in pairs.values():
+            dd = np.array([np.linalg.norm(pos[j] - pos[j - 1]) for j in js_pair])
+            if len(dd) == d.n and np.isclose(dd.mean() - d.commanded, d.AD, atol=1e-12):
+                assert np.isclose(d.RD, 3 * dd.std(ddof=1), atol=1e-12)
+                break
+        else:
+            pytest.fail(f"no direct AD matches {d.name}")
+
+
+def test_path_accuracy_velocity_corners(cube):
+    prog, dwell, pos, q, res = cube
+    tp = prog.targets.position
+    assert len(res.paths) == 4 and len(res.corners) == 4
+    first_rect = int(np.flatnonzero(prog.motion == "linear")[0])
+    for k, path in enumerate(res.paths):
+        j0 = first_rect + k
+        occ = [j0 + 4 * c for c in range(PATH_CYCLES)]
+        c0, c1 = tp[j0 - 1], tp[j0]
+        n = (c1 - c0) / np.linalg.norm(c1 - c0)
+        f = path.plane_fraction
+        cmd = c0 + f[:, None] * (c1 - c0)
+        # each pass is a straight line between attained corners: cut it with the normal planes
+        x = np.empty((len(occ), f.size, 3))
+        for o, j in enumerate(occ):
+            a, b = pos[j - 1], pos[j]
+            u = ((cmd - a) @ n) / ((b - a) @ n)
+            x[o] = a + u[:, None] * (b - a)
+        bary = x.mean(axis=0)
+        at = np.linalg.norm(bary - cmd, axis=1)
+        l = np.linalg.norm(x - bary, axis=2)
+        rt = l.mean(axis=0) + 3 * l.std(axis=0, ddof=1)
+        assert np.allclose(path.plane_AT, at, atol=1e-9)
+        assert np.allclose(path.plane_RT, rt, atol=1e-9)
+        assert np.isclose(path.AT, at.max(), atol=1e-9) and np.isclose(path.RT, rt.max(), atol=1e-9)
+        assert path.n_cycles == PATH_CYCLES
+        # the robot ran at 95 % of the commanded speed, steadily
+        assert np.isclose(path.AV, -0.05, atol=1e-6)
+        assert abs(path.RV) < 1e-6 and path.FV < 1e-6
+    for corner in res.corners:  # the measured path passes through the attained corners
+        assert corner.n >= PATH_CYCLES - 1
+        assert corner.CR_max < np.linalg.norm(OFFSET) + 5 * SIGMA
+
+
+def test_to_json_is_plain_json(cube):
+    out = json.loads(json.dumps(cube[-1].to_json()))
+    p1 = out["poses"]["P1"]
+    assert {"AP_mm", "RP_mm", "APa_deg", "RPc_deg", "AP_angle_deg", "dAP_mm"} <= set(p1)
+    assert p1["vAP_mm"] is None  # each pose is approached from one direction only
+    assert {"AT_mm", "RT_mm", "AV_percent", "FV_mm_per_s"} <= set(next(iter(out["paths"].values())))
+    assert {"AD_mm", "RD_mm"} <= set(next(iter(out["distances"].values())))
+
+
+def test_stabilisation_and_overshoot():
+    prog, dwell = cube_program(4, 0)
+    pos, q = attained(prog, OFFSET, 0.0, ROT_OFFSET, 0.0, np.random.default_rng(0))
+    t, p, qq, seg = trajectory(prog, pos, q, dwell, rate=500.0, dwell_time=2.0)
+    # a damped ringing of 0.5 mm along x after every arrival (τ = 0.1 s, 5 Hz)
+    still = np.concatenate([[False], np.all(np.diff(p, axis=0) == 0, axis=1)])
+    arrive = np.flatnonzero(np.diff(still.astype(int)) == 1)  # first frame at the target
+    ring = np.zeros(t.size)
+    for i in arrive:
+        dt = t[i:] - t[i]
+        ring[i:] += np.where(dt < 1.0, 5e-4 * np.exp(-dt / 0.1) * np.sin(2 * np.pi * 5 * dt), 0)
+    p = p + ring[:, None] * [1.0, 0, 0]
+    res = iso9283(prog, t, p, qq, segment=seg, band=1e-4, min_dwell=0.5)
+    for pose in res.poses:
+        # envelope 0.5 mm·e^(−t/0.1) first stays below 0.1 mm after ~0.16 s
+        assert 0.05 < pose.t_stab_mean < 0.3
+        assert 1e-4 < pose.overshoot_max < 5e-4
+
+
+def test_errors():
+    prog, dwell = cube_program(3, 0)
+    one = Program(Pose(prog.targets.position[:1], prog.targets.quaternion_wxyz[:1]),
+                  prog.motion[:1], prog.speed[:1])  # fmt: skip
+    t = np.arange(10.0)
+    with pytest.raises(robtraj.UserError, match="at least two targets"):
+        iso9283(one, t, np.zeros((10, 3)), np.tile([1.0, 0, 0, 0], (10, 1)))
+    pos, q = attained(prog, OFFSET, 0.0, ROT_OFFSET, 0.0, np.random.default_rng(0))
+    t, p, qq, seg = trajectory(prog, pos, q, np.zeros_like(dwell))  # never stops
+    with pytest.raises(robtraj.UserError, match="no ISO 9283 cycles"):
+        iso9283(prog, t, p, qq, segment=seg)
