@@ -163,9 +163,11 @@ def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
     def xi(tool):
         return jax.vmap(lambda a, b: (a.inverse() @ b).log())(tool0, tool)
 
-    j_pose = jax.jacfwd(lambda gp: xi(tool_poses(g.at[:12].set(gp), problem, frames, fl0)[0]))(
-        g[:12]
-    )
+    # pose columns at g = 0 (the problem is re-centred after every step): with
+    # T = S·cfb·exp(δc)·F·fft·exp(δf) (S the thermal shift), ξ = Ad((F·fft)⁻¹)·δc + δf
+    fft0 = jaxlie.SE3(problem.flange_from_tool)
+    ad = jax.vmap(lambda f: (f @ fft0).inverse().adjoint())(fl0)  # (C, 6, 6)
+    j_pose = jnp.concatenate([ad, jnp.broadcast_to(jnp.eye(6, dtype=ad.dtype), ad.shape)], -1)
     if g.shape[0] == 12:
         return tool0, j_pose
     j_eff = jax.jacfwd(lambda ge: xi(tool_poses(g.at[12:].set(ge), problem, frames)[0]))(g[12:])
@@ -303,12 +305,20 @@ def normal_equations(g: Array, p: Array, problem: BundleProblem, chunks: Frames)
     return acc
 
 
+def _predict_any(g, p, problem, frames):
+    if not problem.rigid_leds:
+        return predict(g, p, problem, frames)
+    tool, _ = tool_poses(g, problem, frames)
+    rot = jax.vmap(lambda t: t.rotation().as_matrix())(tool)
+    return jnp.einsum("cij,mj->cmi", rot, p) + tool.translation()[:, None, :]
+
+
 @eqx.filter_jit
 def cost(g: Array, p: Array, problem: BundleProblem, chunks: Frames) -> Array:
     """Weighted residual sum of squares over all chunks."""
 
     def body(acc, frames):
-        pred = predict(g, p, problem, frames)
+        pred = _predict_any(g, p, problem, frames)
         r = frames.sqrt_weight[..., None] * (frames.measured - pred)
         return acc + jnp.sum(r * r), None
 
@@ -322,8 +332,12 @@ def evaluate(g: Array, p: Array, problem: BundleProblem, chunks: Frames):
 
     def body(_, frames):
         tool, eff = tool_poses(g, problem, frames)
-        pred = led_positions(tool, eff, p, problem.normals)
-        nrm = jax.vmap(lambda T: jax.vmap(T.rotation().apply)(problem.normals))(tool)
+        rot = jax.vmap(lambda t: t.rotation().as_matrix())(tool)
+        if problem.rigid_leds:
+            pred = jnp.einsum("cij,mj->cmi", rot, p) + tool.translation()[:, None, :]
+        else:
+            pred = led_positions(tool, eff, p, problem.normals)
+        nrm = jnp.einsum("cij,mj->cmi", rot, problem.normals)
         return None, (frames.measured - pred, emission_angle(pred, nrm))
 
     _, (d, theta) = jax.lax.scan(body, None, chunks)

@@ -39,7 +39,6 @@ of the `Effects` (`estimate=`), from every usable frame:
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -57,6 +56,7 @@ from . import _calib_lm as lm, _calib_problem as cp
 from ._calib_data import CalibrationData, prepare
 from ._calib_init import pose_pairs, robot_world_hand_eye
 from ._calib_problem import BundleParams, BundleProblem, Frames, residual_fn, residuals
+from ._calib_result import CalibrationResult, _pose_of, _se3, _wxyz_xyz
 
 __all__ = [
     "BundleParams",
@@ -75,167 +75,6 @@ _ROBUST_K = {"huber": 2.0, "cauchy": 2.0}
 _TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
 _OUTLIER_U = 4.0  # frames whose noise-normalised residual RMS exceeds this are outliers
 _PROBE_SIGMA = (20e-6, 2e-4)  # [m], [rad] assumed probe uncertainty
-
-
-def _se3(wxyz_xyz) -> jaxlie.SE3:
-    return jaxlie.SE3(jnp.asarray(wxyz_xyz, jnp.float64))
-
-
-def _pose_of(wxyz_xyz) -> Pose:
-    a = np.asarray(wxyz_xyz, np.float64)
-    return Pose(position=a[4:].copy(), quaternion_wxyz=a[:4].copy())
-
-
-def _wxyz_xyz(pose: Pose) -> np.ndarray:
-    return np.concatenate([np.asarray(pose.quaternion_wxyz), np.asarray(pose.position)]).astype(
-        np.float64
-    )
-
-
-@dataclasses.dataclass(frozen=True)
-class CalibrationResult:
-    """Result of `fit` (SI units; poses as `Pose`).
-
-    Parameter vector of the covariance (`parameter_names`): ``camera_from_base.{tx..rz}``
-    and ``flange_from_tool.{tx..rz}`` (tangent space at the estimate, right
-    perturbation ``T̂ @ exp(δ)``), then each estimated effect entry (e.g.
-    ``joint_offset[2]``, ``link_length[1].a``), then ``constellation[LED k].{x,y,z}``.
-    Fixed (dropped or not estimated) parameters have zero variance.
-    """
-
-    camera_from_base: Pose
-    flange_from_tool: Pose
-    led_ids: np.ndarray
-    constellation: np.ndarray
-    effects: dict[str, Any]
-    estimated: tuple[str, ...]
-    parameter_names: tuple[str, ...]
-    covariance: np.ndarray
-    residual_rms_m: float
-    noise_sigma_m: float
-    gauge: str
-    gauge_reference: np.ndarray
-    identifiability: dict[str, Any]
-    iterations: int
-    converged: bool
-    chi2: float = float("nan")
-    n_residuals: int = 0
-    n_params: int = 0
-    log_likelihood: float = float("nan")
-    residual_rms_per_led: dict[int, float] = dataclasses.field(default_factory=dict)
-    residual_rms_per_frame: np.ndarray | None = None
-    residuals: np.ndarray | None = None  # (N, leds, 3) measured − predicted [m], NaN unused
-    weights: np.ndarray | None = None  # (N, leds) final weights [1/m²], 0 unused
-    outlier_frames: np.ndarray | None = None
-    noise_model: dict[str, Any] = dataclasses.field(default_factory=dict)
-    initial: dict[str, Pose] = dataclasses.field(default_factory=dict)
-    unseen_leds: tuple[int, ...] = ()
-    robust: str | None = None
-
-    @property
-    def time_offset(self) -> float:
-        return float(np.asarray(self.effects.get("time_offset", 0.0)))
-
-    @property
-    def sigma(self) -> dict[str, float]:
-        """Standard deviation per parameter name."""
-        return dict(zip(self.parameter_names, np.sqrt(np.clip(np.diag(self.covariance), 0, None))))
-
-    def effects_module(self, n_joints: int = 6) -> Effects:
-        return Effects.from_dict(self.effects, n_joints)
-
-    def to_json(self) -> dict[str, Any]:
-        """The CALIB.json dictionary of DESIGN section 8."""
-
-        def pose(p: Pose) -> dict:
-            return {"position": p.position.tolist(), "quaternion_wxyz": p.quaternion_wxyz.tolist()}
-
-        return {
-            "camera_from_base": pose(self.camera_from_base),
-            "flange_from_tool": pose(self.flange_from_tool),
-            "constellation": {
-                "led_ids": [int(i) for i in self.led_ids],
-                "positions": np.asarray(self.constellation).tolist(),
-            },
-            "time_offset": self.time_offset,
-            "covariance": {
-                "parameters": list(self.parameter_names),
-                "matrix": np.asarray(self.covariance).tolist(),
-            },
-            "residual_rms_m": self.residual_rms_m,
-            "effects": {k: np.asarray(v).tolist() for k, v in self.effects.items()},
-            "estimated": list(self.estimated),
-            "gauge": {
-                "kind": self.gauge,
-                "reference_constellation": np.asarray(self.gauge_reference).tolist(),
-            },
-            "identifiability": self.identifiability,
-            "noise_sigma_m": self.noise_sigma_m,
-            "noise_model": self.noise_model,
-            "chi2": self.chi2,
-            "n_residuals": self.n_residuals,
-            "n_params": self.n_params,
-            "log_likelihood": self.log_likelihood,
-            "iterations": self.iterations,
-            "converged": self.converged,
-            "robust": self.robust,
-            "residual_rms_per_led_m": {str(k): v for k, v in self.residual_rms_per_led.items()},
-            "outlier_frames": []
-            if self.outlier_frames is None
-            else [int(i) for i in self.outlier_frames],
-            "unseen_leds": list(self.unseen_leds),
-        }
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any] | str) -> CalibrationResult:
-        """Read back `to_json` output (a dict or a JSON string); per-frame arrays are absent."""
-        if isinstance(d, str):
-            d = json.loads(d)
-        try:
-
-            def pose(p):
-                return Pose(
-                    np.asarray(p["position"], float), np.asarray(p["quaternion_wxyz"], float)
-                )
-
-            cov = d.get("covariance", {})
-            gauge = d.get("gauge", {})
-            gauge = gauge if isinstance(gauge, dict) else {"kind": gauge}
-            effects = dict(d.get("effects", {}))
-            if "time_offset" in d and d["time_offset"]:
-                effects.setdefault("time_offset", d["time_offset"])
-            return cls(
-                camera_from_base=pose(d["camera_from_base"]),
-                flange_from_tool=pose(d["flange_from_tool"]),
-                led_ids=np.asarray(d["constellation"]["led_ids"], np.int64),
-                constellation=np.asarray(d["constellation"]["positions"], float).reshape(-1, 3),
-                effects=effects,
-                estimated=tuple(d.get("estimated", ())),
-                parameter_names=tuple(cov.get("parameters", ())),
-                covariance=np.asarray(cov.get("matrix", np.zeros((0, 0))), float),
-                residual_rms_m=float(d.get("residual_rms_m", float("nan"))),
-                noise_sigma_m=float(d.get("noise_sigma_m", float("nan"))),
-                gauge=str(gauge.get("kind", "unknown")),
-                gauge_reference=np.asarray(
-                    gauge.get("reference_constellation", d["constellation"]["positions"]), float
-                ).reshape(-1, 3),
-                identifiability=d.get("identifiability", {}),
-                iterations=int(d.get("iterations", 0)),
-                converged=bool(d.get("converged", False)),
-                chi2=float(d.get("chi2", float("nan"))),
-                n_residuals=int(d.get("n_residuals", 0)),
-                n_params=int(d.get("n_params", 0)),
-                log_likelihood=float(d.get("log_likelihood", float("nan"))),
-                residual_rms_per_led={
-                    int(k): float(v) for k, v in d.get("residual_rms_per_led_m", {}).items()
-                },
-                outlier_frames=np.asarray(d.get("outlier_frames", []), np.int64),
-                noise_model=d.get("noise_model", {}),
-                unseen_leds=tuple(d.get("unseen_leds", ())),
-                robust=d.get("robust"),
-            )
-        except (KeyError, TypeError, ValueError) as e:
-            raise UserError(f"not a robtraj calibration (CALIB.json): {e}") from None
 
 
 # ----------------------------------------------------------------------------- gauge
@@ -375,8 +214,8 @@ def _probe_frames(rec: Recording, data: CalibrationData, tau: float):
 
 @eqx.filter_jit
 def _probe_terms(g, problem: BundleProblem, frames: Frames, probed):
-    if not problem.kinematic:
-        problem = eqx.tree_at(lambda p: p.kinematic, problem, True)  # static: rebuild below
+    """Probe-pose residuals ``−W·log(probed⁻¹ · predicted)`` linearised in g (`problem`
+    must be `kinematic`: the probe times are not tracker frames)."""
     w = jnp.concatenate([jnp.full(3, 1 / _PROBE_SIGMA[0]), jnp.full(3, 1 / _PROBE_SIGMA[1])])
 
     def f(gg):
@@ -435,7 +274,9 @@ def fit(
       `init`'s values (zero by default).
     - `robust`: ``None``, ``"huber"`` or ``"cauchy"`` (IRLS).
     - `init`: start from this calibration instead of the closed-form initialisation
-      (its constellation becomes the gauge reference, its effects the fixed values).
+      (its poses, constellation and effects are the start; its gauge reference stays
+      the gauge reference, so the result is in the same gauge; effects not in
+      `estimate` stay at its values).
     - `weights`: `(N, M)` per-LED-observation weights ∝ 1/variance, aligned with the
       recording's frames and `led_ids`; default: a noise model estimated from the data.
     - `solver`: ``"chunked"`` (normal equations in chunks, any length) or
@@ -455,19 +296,17 @@ def fit(
         raise UserError(f"unknown solver {solver!r}")
     free = tuple(n for n in EFFECT_NAMES if n in estimate)
 
-    tool_constellation = None
+    reference = start = None
     if init is not None and recording.tool is not None:
-        row = {int(i): k for k, i in enumerate(init.led_ids)}
-        tool_constellation = np.array(
-            [
-                init.constellation[row[int(i)]]
-                if int(i) in row
-                else recording.tool.constellation[k]
-                for k, i in enumerate(recording.tool.led_ids)
-            ]
-        )
+        reference = _per_tool_led(recording, init.led_ids, init.gauge_reference)
+        start = _per_tool_led(recording, init.led_ids, init.constellation)
     tau0 = 0.0 if init is None else init.time_offset
-    data = prepare(recording, time_offset=tau0, constellation=tool_constellation)
+    data = prepare(recording, time_offset=tau0, constellation=reference)
+    if start is not None:
+        col = {int(i): k for k, i in enumerate(recording.tool.led_ids)}
+        start = start[[col[int(i)] for i in data.led_ids]]
+    else:
+        start = data.reference
     n_joints = data.robot.n_joints
     effects0 = Effects.zeros(n_joints)
     if init is not None:
@@ -496,7 +335,7 @@ def fit(
         robot=data.robot,
         camera_from_base=jnp.asarray(z),
         flange_from_tool=jnp.asarray(x),
-        constellation=jnp.asarray(data.reference),
+        constellation=jnp.asarray(start),
         gauge_basis=jnp.asarray(basis),
         normals=jnp.asarray(data.normals),
         effects=effects0,
@@ -617,12 +456,14 @@ def fit(
     with np.errstate(invalid="ignore", divide="ignore"):
         per_frame[data.frame] = np.where(cnt > 0, np.sqrt(np.sum(sq * used, 1) / cnt), np.nan)
         per_led = np.sqrt(np.sum(sq * used, 0) / used.sum(0))
-        u_frame = np.sqrt(np.sum(w * sq * used, 1) / np.maximum(3 * cnt, 1) / s2)
+        u_frame = np.sqrt(np.sum(w_noise * sq * used, 1) / np.maximum(3 * cnt, 1) / s2)
     outliers = data.frame[(cnt > 0) & (u_frame > _OUTLIER_U)]
     full_res = np.full((frames_rec, data.n_leds, 3), np.nan)
     full_res[data.frame] = np.where(used[..., None], d, np.nan)
-    full_w = np.zeros((frames_rec, data.n_leds))
-    full_w[data.frame] = w
+    # weights in the recording's LED columns, so that they can be passed back as `weights=`
+    rec_col = {int(i): k for k, i in enumerate(recording.led_ids)}
+    full_w = np.zeros((frames_rec, recording.n_leds))
+    full_w[np.ix_(data.frame, [rec_col[int(i)] for i in data.led_ids])] = w
 
     eff = problem.effects
     effects_out = {n: np.asarray(getattr(eff, n)).tolist() for n in free}
@@ -692,6 +533,18 @@ def _phi_names_for(names_theta, q, basis, data) -> list[str]:
         k = int(np.argmax(np.abs(basis[:, j])))
         out.append(f"constellation[LED {int(data.led_ids[k // 3])}].{'xyz'[k % 3]}")
     return out
+
+
+def _per_tool_led(rec: Recording, ids, values) -> np.ndarray:
+    """`values` (rows per `ids`) as rows per tool LED; the nominal where `ids` lacks one."""
+    row = {int(i): k for k, i in enumerate(ids)}
+    vals = np.asarray(values, float)
+    return np.array(
+        [
+            vals[row[int(i)]] if int(i) in row else rec.tool.constellation[k]
+            for k, i in enumerate(rec.tool.led_ids)
+        ]
+    )
 
 
 def _user_weights(rec: Recording, data: CalibrationData, weights: np.ndarray) -> np.ndarray:

@@ -1,0 +1,109 @@
+"""`robtraj calibrate`: bundle calibration of a recording → CALIB.json."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from .._errors import UserError
+
+
+def register(sub) -> argparse.ArgumentParser:
+    from ..model import EFFECT_NAMES
+
+    p = sub.add_parser(
+        "calibrate",
+        help="calibrate camera, tool mount, LED constellation (and effects) jointly",
+        description=(
+            "Bundle calibration (Levenberg-Marquardt over all frames): camera<-base, "
+            "flange<-tool, the LED constellation and optionally physical effects, with "
+            "covariances, from a closed-form start. Writes CALIB.json."
+        ),
+    )
+    p.add_argument("recording", metavar="REC.h5", help="recording with robot log and tool")
+    p.add_argument("-o", "--out", required=True, metavar="CALIB.json", help="file to write")
+    p.add_argument(
+        "--robust",
+        nargs="?",
+        const="huber",
+        default=None,
+        choices=["huber", "cauchy"],
+        help="robust loss (IRLS); bare --robust means huber",
+    )
+    p.add_argument(
+        "--estimate",
+        default="",
+        metavar="NAME,...",
+        help="effects to estimate as well, comma-separated: " + ", ".join(EFFECT_NAMES),
+    )
+    p.add_argument(
+        "--json",
+        nargs="?",
+        const="-",
+        default=None,
+        metavar="PATH",
+        help="also print the result as JSON (to PATH, or stdout without PATH)",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite CALIB.json if it exists")
+    p.set_defaults(func=run)
+    return p
+
+
+def _progress():
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    status = console.status("calibrating")
+    return console, status
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..model import EFFECT_NAMES
+    from ..recording import read_recording
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise UserError(f"{out} exists; choose another name or pass --force")
+    estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())
+    bad = [e for e in estimate if e not in EFFECT_NAMES]
+    if bad:
+        raise UserError(
+            f"unknown effect(s) in --estimate: {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})"
+        )
+    rec = read_recording(args.recording)
+    from ..estimate.calibration import fit
+
+    _, status = _progress()
+    with status:
+        res = fit(rec, estimate=estimate, robust=args.robust, progress=status.update)
+    doc = res.to_json()
+    text = json.dumps(doc, indent=1)
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(out)
+    if args.json == "-":
+        print(text)
+    elif args.json:
+        Path(args.json).write_text(text)
+    s = res.sigma
+    t = res.camera_from_base.position
+    lines = [
+        f"wrote {out}: {res.n_residuals // 3} LED observations, {res.n_params} parameters, "
+        f"residual RMS {res.residual_rms_m * 1e6:.1f} µm, "
+        f"{'converged' if res.converged else 'NOT converged'} in {res.iterations} iterations",
+        f"camera<-base position [{t[0]:.5f}, {t[1]:.5f}, {t[2]:.5f}] m "
+        f"(σ {1e6 * max(s['camera_from_base.tx'], s['camera_from_base.ty'], s['camera_from_base.tz']):.1f} µm)",
+    ]
+    if "time_offset" in res.estimated:
+        lines.append(
+            f"time offset {res.time_offset * 1e3:.4f} ms (σ {s['time_offset'] * 1e3:.4f} ms)"
+        )
+    for d in res.identifiability.get("dropped", []):
+        lines.append(
+            f"not identifiable, fixed: {d['parameter']} (with {', '.join(d['confounded_with'])})"
+        )
+    if res.outlier_frames is not None and res.outlier_frames.size:
+        lines.append(f"{res.outlier_frames.size} outlier frames")
+    print("\n".join(lines))
+    return 0 if res.converged else 1

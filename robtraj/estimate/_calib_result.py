@@ -1,0 +1,178 @@
+"""`CalibrationResult`: the bundle calibration's output and its CALIB.json form (DESIGN §8)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from .._errors import UserError
+from ..model import Effects
+from ..recording import Pose
+
+
+def _se3(wxyz_xyz) -> jaxlie.SE3:
+    return jaxlie.SE3(jnp.asarray(wxyz_xyz, jnp.float64))
+
+
+def _pose_of(wxyz_xyz) -> Pose:
+    a = np.asarray(wxyz_xyz, np.float64)
+    return Pose(position=a[4:].copy(), quaternion_wxyz=a[:4].copy())
+
+
+def _wxyz_xyz(pose: Pose) -> np.ndarray:
+    return np.concatenate([np.asarray(pose.quaternion_wxyz), np.asarray(pose.position)]).astype(
+        np.float64
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationResult:
+    """Result of `fit` (SI units; poses as `Pose`).
+
+    Parameter vector of the covariance (`parameter_names`): ``camera_from_base.{tx..rz}``
+    and ``flange_from_tool.{tx..rz}`` (tangent space at the estimate, right
+    perturbation ``T̂ @ exp(δ)``), then each estimated effect entry (e.g.
+    ``joint_offset[2]``, ``link_length[1].a``), then ``constellation[LED k].{x,y,z}``.
+    Fixed (dropped or not estimated) parameters have zero variance.
+    """
+
+    camera_from_base: Pose
+    flange_from_tool: Pose
+    led_ids: np.ndarray
+    constellation: np.ndarray
+    effects: dict[str, Any]
+    estimated: tuple[str, ...]
+    parameter_names: tuple[str, ...]
+    covariance: np.ndarray
+    residual_rms_m: float
+    noise_sigma_m: float
+    gauge: str
+    gauge_reference: np.ndarray
+    identifiability: dict[str, Any]
+    iterations: int
+    converged: bool
+    chi2: float = float("nan")
+    n_residuals: int = 0
+    n_params: int = 0
+    log_likelihood: float = float("nan")
+    residual_rms_per_led: dict[int, float] = dataclasses.field(default_factory=dict)
+    residual_rms_per_frame: np.ndarray | None = None
+    # (N, leds, 3) measured − predicted [m] per frame and LED of `led_ids`, NaN unused
+    residuals: np.ndarray | None = None
+    # (N, recording LEDs) final weights [1/m²] in the recording's `led_ids` columns, 0 unused
+    weights: np.ndarray | None = None
+    outlier_frames: np.ndarray | None = None
+    noise_model: dict[str, Any] = dataclasses.field(default_factory=dict)
+    initial: dict[str, Pose] = dataclasses.field(default_factory=dict)
+    unseen_leds: tuple[int, ...] = ()
+    robust: str | None = None
+
+    @property
+    def time_offset(self) -> float:
+        return float(np.asarray(self.effects.get("time_offset", 0.0)))
+
+    @property
+    def sigma(self) -> dict[str, float]:
+        """Standard deviation per parameter name."""
+        return dict(zip(self.parameter_names, np.sqrt(np.clip(np.diag(self.covariance), 0, None))))
+
+    def effects_module(self, n_joints: int = 6) -> Effects:
+        return Effects.from_dict(self.effects, n_joints)
+
+    def to_json(self) -> dict[str, Any]:
+        """The CALIB.json dictionary of DESIGN section 8."""
+
+        def pose(p: Pose) -> dict:
+            return {"position": p.position.tolist(), "quaternion_wxyz": p.quaternion_wxyz.tolist()}
+
+        return {
+            "camera_from_base": pose(self.camera_from_base),
+            "flange_from_tool": pose(self.flange_from_tool),
+            "constellation": {
+                "led_ids": [int(i) for i in self.led_ids],
+                "positions": np.asarray(self.constellation).tolist(),
+            },
+            "time_offset": self.time_offset,
+            "covariance": {
+                "parameters": list(self.parameter_names),
+                "matrix": np.asarray(self.covariance).tolist(),
+            },
+            "residual_rms_m": self.residual_rms_m,
+            "effects": {k: np.asarray(v).tolist() for k, v in self.effects.items()},
+            "estimated": list(self.estimated),
+            "gauge": {
+                "kind": self.gauge,
+                "reference_constellation": np.asarray(self.gauge_reference).tolist(),
+            },
+            "identifiability": self.identifiability,
+            "noise_sigma_m": self.noise_sigma_m,
+            "noise_model": self.noise_model,
+            "chi2": self.chi2,
+            "n_residuals": self.n_residuals,
+            "n_params": self.n_params,
+            "log_likelihood": self.log_likelihood,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "robust": self.robust,
+            "residual_rms_per_led_m": {str(k): v for k, v in self.residual_rms_per_led.items()},
+            "outlier_frames": []
+            if self.outlier_frames is None
+            else [int(i) for i in self.outlier_frames],
+            "unseen_leds": list(self.unseen_leds),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any] | str) -> CalibrationResult:
+        """Read back `to_json` output (a dict or a JSON string); per-frame arrays are absent."""
+        if isinstance(d, str):
+            d = json.loads(d)
+        try:
+
+            def pose(p):
+                return Pose(
+                    np.asarray(p["position"], float), np.asarray(p["quaternion_wxyz"], float)
+                )
+
+            cov = d.get("covariance", {})
+            gauge = d.get("gauge", {})
+            gauge = gauge if isinstance(gauge, dict) else {"kind": gauge}
+            effects = dict(d.get("effects", {}))
+            if "time_offset" in d and d["time_offset"]:
+                effects.setdefault("time_offset", d["time_offset"])
+            return cls(
+                camera_from_base=pose(d["camera_from_base"]),
+                flange_from_tool=pose(d["flange_from_tool"]),
+                led_ids=np.asarray(d["constellation"]["led_ids"], np.int64),
+                constellation=np.asarray(d["constellation"]["positions"], float).reshape(-1, 3),
+                effects=effects,
+                estimated=tuple(d.get("estimated", ())),
+                parameter_names=tuple(cov.get("parameters", ())),
+                covariance=np.asarray(cov.get("matrix", np.zeros((0, 0))), float),
+                residual_rms_m=float(d.get("residual_rms_m", float("nan"))),
+                noise_sigma_m=float(d.get("noise_sigma_m", float("nan"))),
+                gauge=str(gauge.get("kind", "unknown")),
+                gauge_reference=np.asarray(
+                    gauge.get("reference_constellation", d["constellation"]["positions"]), float
+                ).reshape(-1, 3),
+                identifiability=d.get("identifiability", {}),
+                iterations=int(d.get("iterations", 0)),
+                converged=bool(d.get("converged", False)),
+                chi2=float(d.get("chi2", float("nan"))),
+                n_residuals=int(d.get("n_residuals", 0)),
+                n_params=int(d.get("n_params", 0)),
+                log_likelihood=float(d.get("log_likelihood", float("nan"))),
+                residual_rms_per_led={
+                    int(k): float(v) for k, v in d.get("residual_rms_per_led_m", {}).items()
+                },
+                outlier_frames=np.asarray(d.get("outlier_frames", []), np.int64),
+                noise_model=d.get("noise_model", {}),
+                unseen_leds=tuple(d.get("unseen_leds", ())),
+                robust=d.get("robust"),
+            )
+        except (KeyError, TypeError, ValueError) as e:
+            raise UserError(f"not a robtraj calibration (CALIB.json): {e}") from None
