@@ -1,13 +1,16 @@
 """NumPy quaternion helpers for the analysis layer (w, x, y, z; batched over leading axes).
 
-The analysis runs on NumPy/SciPy arrays of whole recordings (k-d trees, tables), so it
-keeps its own small float64 versions of the `robtraj.jax_ops` rotation kernels.
+The analysis runs on NumPy/SciPy arrays of whole recordings (k-d trees, tables); these
+wrap the `robtraj.jax_ops` kernels with NumPy in and out.
 """
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from .. import jax_ops as _ops
 
 
 def quat_normalize(q: np.ndarray) -> np.ndarray:
@@ -15,46 +18,30 @@ def quat_normalize(q: np.ndarray) -> np.ndarray:
 
 
 def quat_conjugate(q: np.ndarray) -> np.ndarray:
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
+    return np.asarray(_ops.quat_conjugate(jnp.asarray(q)))
 
 
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product `a ⊗ b` (apply `b` first, then `a`)."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
+    a, b = np.broadcast_arrays(a, b)
+    return np.asarray(_ops.quat_multiply(jnp.asarray(a), jnp.asarray(b)))
 
 
 def rotation_angle(q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
-    """Single rotation angle [rad] of `q_a⁻¹ ⊗ q_b` (paper eq. 1–2), in `[0, π]`.
-
-    # atan2 form: acos(w) or acos of the trace loses precision near 0.
-    """
-    rel = quat_multiply(quat_conjugate(q_a), q_b)
-    return np.asarray(2.0 * np.arctan2(np.linalg.norm(rel[..., 1:], axis=-1), np.abs(rel[..., 0])))
+    """Single rotation angle [rad] of `q_a⁻¹ ⊗ q_b` (paper eq. 1–2), in `[0, π]`."""
+    q_a, q_b = np.broadcast_arrays(q_a, q_b)
+    return np.asarray(_ops.rotation_angle(jnp.asarray(q_a), jnp.asarray(q_b)))
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray | float) -> np.ndarray:
     """Spherical linear interpolation from `q0` (s=0) to `q1` (s=1) along the shorter arc."""
-    s = np.asarray(s, dtype=np.float64)[..., None]
-    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)
-    n_minus = np.linalg.norm(q1 - q0, axis=-1, keepdims=True)
-    n_plus = np.linalg.norm(q1 + q0, axis=-1, keepdims=True)
-    theta = 2.0 * np.arctan2(n_minus, n_plus)  # angle between q0 and q1 in R^4, <= π/2
-    # sin(aθ)/sinθ = a·sinc(aθ/π)/sinc(θ/π): no 0/0 for nearly equal quaternions
-    denom = np.sinc(theta / np.pi)
-    c0 = (1.0 - s) * np.sinc((1.0 - s) * theta / np.pi) / denom
-    c1 = s * np.sinc(s * theta / np.pi) / denom
-    return quat_normalize(c0 * q0 + c1 * q1)
+    s = np.asarray(s, dtype=np.float64)
+    q0, q1 = np.broadcast_arrays(q0, q1)
+    shape = np.broadcast_shapes(q0.shape[:-1], s.shape)
+    q0, q1 = np.broadcast_to(q0, (*shape, 4)), np.broadcast_to(q1, (*shape, 4))
+    return np.asarray(
+        _ops.slerp(jnp.asarray(q0), jnp.asarray(q1), jnp.asarray(np.broadcast_to(s, shape)))
+    )
 
 
 def to_rotation(q_wxyz: np.ndarray) -> Rotation:
