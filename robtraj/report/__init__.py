@@ -6,6 +6,7 @@ from ._figures import (
     pose_quality_figure as pose_quality_figure,
     velocity_figure as velocity_figure,
     visibility_figure as visibility_figure,
+    weighting_figure as weighting_figure,
 )
 from ._html import (
     Section as Section,

@@ -157,3 +157,35 @@ def pose_quality_figure(
     for a in (a0, a1):
         a.grid(True, alpha=0.3)
     return _save(fig, path)
+
+
+def weighting_figure(
+    path: str | os.PathLike,
+    time: np.ndarray,
+    truth_position: np.ndarray,
+    estimates: dict[str, np.ndarray],
+    *,
+    edge: np.ndarray | None = None,
+    title: str = "Tool position per weighting scheme near the visibility edge",
+) -> Path:
+    """Paper Fig. 4 kind: each scheme's position error against truth [m → µm] per axis
+    over time [s] (1-frame noise smoothed over 25 frames), with frames where an LED is at
+    the edge of visibility (`edge` `(N,)` bool) shaded."""
+    t = time - time[0]
+    fig, axes = plt.subplots(3, 1, figsize=(10, 7.5), sharex=True, constrained_layout=True)
+    kernel = np.ones(25) / 25
+    for name, pos in estimates.items():
+        err = (pos - truth_position) * 1e6
+        for k, ax in enumerate(axes):
+            e = np.convolve(np.nan_to_num(err[:, k]), kernel, mode="same")
+            ax.plot(t, e, lw=0.8, label=name)
+    for k, ax in enumerate(axes):
+        if edge is not None:
+            ax.fill_between(t, 0, 1, where=edge, transform=ax.get_xaxis_transform(),
+                            color="0.85", step="mid", label="LED at visibility edge" if k == 0 else None)  # fmt: skip
+        ax.set_ylabel(f"{'xyz'[k]} error [µm]")
+        ax.grid(True, alpha=0.3)
+    axes[0].set_title(title)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("time [s]")
+    return _save(fig, path)
