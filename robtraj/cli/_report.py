@@ -49,6 +49,15 @@ def run(args: argparse.Namespace) -> int:
     write_tum(out / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
     if dev is not None:
         write_tum(out / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
+    _analysis_inputs.write_json(
+        args.json,
+        {
+            "report": str(path),
+            "iso9283": None if iso is None else iso.to_json(),
+            "deviation": None if dev is None else dev.summary().to_json(),
+            "notes": notes,
+        },
+    )
     for n in notes:
         print(f"note: {n}")
     print(f"report: {path}")
