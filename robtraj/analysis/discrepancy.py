@@ -1,0 +1,392 @@
+"""Discrepancy discovery (DESIGN section 7): what is the nominal model missing?
+
+Fit the nominal model (bundle calibration); compare prediction and measurement; localise
+the disagreement (time, program segment, joint angles, speed, LED, emission angle); refit
+with each candidate effect of the library added and score it with a likelihood-ratio test
+and BIC, with the noise level estimated from the data's static segments (not from the
+fit's own residual, which contains what is missing); name the best significant effect,
+add it and repeat until nothing significant remains; finally test whether structured
+residual is left and, if so, report where it lives — never forcing a library name on it.
+
+The **gap** is the RMS of the systematic disagreement with the noise taken out:
+``sqrt(max(0, mean|r|² − mean 3σ̂²))`` over all LED observations [m].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from .._errors import UserError
+from ..model import EFFECT_NAMES
+from ..recording import Recording
+
+#: significance of a candidate effect, before the Bonferroni division by the candidates
+ALPHA = 0.01
+#: significance of residual structure against one variable, before Bonferroni
+ALPHA_STRUCTURE = 0.001
+
+
+@dataclasses.dataclass(frozen=True)
+class Step:
+    """One named effect: fitted `parameters` {name: (value, σ)} (SI units), the gap after
+    adding it [m], and its `score` (likelihood ratio, dof, p-value, ΔBIC)."""
+
+    effect: str
+    parameters: dict[str, tuple[float, float]]
+    gap_after_m: float
+    score: dict[str, Any]
+    candidates: dict[str, dict[str, Any]]
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscrepancyResult:
+    """What the workflow found. `structure` lists, per variable, the residual-structure
+    test after the last step (`statistic`, `dof`, `p_value`, `significant`)."""
+
+    gap_before_m: float
+    steps: list[Step]
+    gap_after_m: float
+    unexplained: bool
+    structure: dict[str, dict[str, Any]]
+    localisation: dict[str, dict[str, Any]]
+    noise_sigma_m: float
+    calibration: Any
+    gaps: list[float]
+    residual_before: dict[str, tuple]
+    residual_after: dict[str, tuple]
+
+    @property
+    def named(self) -> list[str]:
+        return [s.effect for s in self.steps]
+
+    @property
+    def unexplained_where(self) -> list[str]:
+        """Variables the remaining structure correlates with, strongest first."""
+        sig = [
+            (v["statistic"] / max(v["dof"], 1), k)
+            for k, v in self.structure.items()
+            if v["significant"]
+        ]
+        return [k for _, k in sorted(sig, reverse=True)]
+
+    def to_json(self) -> dict[str, Any]:
+        """DESIGN section 8: gap_before_m, steps, gap_after_m, unexplained (+ details)."""
+        return {
+            "gap_before_m": self.gap_before_m,
+            "steps": [
+                {
+                    "effect": s.effect,
+                    "parameters": {
+                        k: {"value": v, "sigma": e} for k, (v, e) in s.parameters.items()
+                    },
+                    "gap_after_m": s.gap_after_m,
+                    "score": s.score,
+                }
+                for s in self.steps
+            ],
+            "gap_after_m": self.gap_after_m,
+            "unexplained": self.unexplained,
+            "unexplained_where": self.unexplained_where,
+            "noise_sigma_m": self.noise_sigma_m,
+            "structure_after": self.structure,
+            "localisation_before": self.localisation,
+        }
+
+    def figures(self, out_dir: str | Path) -> list[Path]:
+        """PNGs: the gap step by step, and the residual structure before and after."""
+        from ..report._discrepancy_figures import gap_figure, structure_figure
+
+        out = Path(out_dir)
+        return [
+            gap_figure(
+                out / "discrepancy_gap.png", ["nominal", *self.named], self.gaps, self.noise_sigma_m
+            ),
+            structure_figure(
+                out / "discrepancy_structure.png", self.residual_before, self.residual_after
+            ),
+        ]
+
+
+# ----------------------------------------------------------------------------- noise
+
+
+def static_noise(rec: Recording, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis noise σ [m] as a function of emission angle, from the static segments.
+
+    Within a static segment the tool does not move, so the scatter of each LED about its
+    segment mean is noise alone. Returns (bin centres [rad], σ per bin); the bins are
+    angle quantiles of the static observations.
+    """
+    from ..estimate import static_segments
+
+    pos = np.asarray(rec.positions)
+    segs = static_segments(rec.time, pos)
+    dev2, ang = [], []
+    for a, b in segs:
+        p = pos[a:b]
+        seen = np.isfinite(p[..., 0])
+        n = seen.sum(0)
+        ok = n >= 3
+        mean = np.where(seen[..., None], p, 0.0).sum(0) / np.maximum(n, 1)[:, None]
+        d2 = np.where(seen[..., None], (p - mean) ** 2, 0.0).sum(-1)  # (f, m), 3 axes
+        corr = (n / np.maximum(n - 1, 1))[None, :]  # unbiased
+        use = seen & ok[None, :] & np.isfinite(angles[a:b])
+        dev2.append((d2 * corr / 3.0)[use])
+        ang.append(angles[a:b][use])
+    if not dev2 or sum(x.size for x in dev2) < 30:
+        raise UserError(
+            "no static segment with the tool at rest: the noise level cannot be estimated "
+            "independently of the model"
+        )
+    dev2, ang = np.concatenate(dev2), np.concatenate(ang)
+    edges = np.quantile(ang, np.linspace(0, 1, 9))
+    idx = np.clip(np.searchsorted(edges, ang, side="right") - 1, 0, 7)
+    centre = np.array([np.median(ang[idx == k]) for k in range(8)])
+    var = np.array([np.mean(dev2[idx == k]) for k in range(8)])
+    return centre, np.sqrt(var)
+
+
+def _observation_angles(rec: Recording) -> np.ndarray:
+    """Emission angle [rad] of every LED observation `(N, M)` from per-frame poses."""
+    from ..estimate import estimate_poses
+    from ..estimate._poses import _emission_angles
+
+    if rec.tool is None or rec.tool.normals is None:
+        return np.zeros(rec.positions.shape[:2])
+    est = estimate_poses(rec, weighting="uniform", register=False, leds=rec.led_ids)
+    normals = np.full((rec.n_leds, 3), np.nan)
+    tool_ids = list(np.asarray(rec.tool.led_ids))
+    const = np.zeros((rec.n_leds, 3))
+    for k, i in enumerate(rec.led_ids):
+        if i in tool_ids:
+            normals[k] = rec.tool.normals[tool_ids.index(i)]
+            const[k] = rec.tool.constellation[tool_ids.index(i)]
+    ang = _emission_angles(est.position, est.quaternion_wxyz, const, np.nan_to_num(normals))
+    return np.where(rec.visible & est.valid[:, None], ang, np.nan)
+
+
+# ----------------------------------------------------------------------------- structure
+
+
+def _frame_variables(rec: Recording, angles: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-observation values `(N, M)` of the variables the disagreement is localised by."""
+    from ..model import interpolate_joints
+
+    n, m = rec.positions.shape[:2]
+    out: dict[str, np.ndarray] = {"time": np.broadcast_to(rec.time[:, None], (n, m))}
+    if rec.robot is not None:
+        import jax.numpy as jnp
+
+        q = np.asarray(
+            interpolate_joints(
+                jnp.asarray(rec.robot.time), jnp.asarray(rec.robot.joints), jnp.asarray(rec.time)
+            )
+        )
+        for j in range(q.shape[1]):
+            out[f"joint {j + 1}"] = np.broadcast_to(q[:, j, None], (n, m))
+        qd = np.gradient(q, rec.time, axis=0)
+        out["joint speed"] = np.broadcast_to(np.linalg.norm(qd, axis=1)[:, None], (n, m))
+    if rec.program is not None and rec.program.segment is not None:
+        out["program segment"] = np.broadcast_to(rec.program.segment[:, None], (n, m))
+    out["LED"] = np.broadcast_to(np.arange(m)[None, :], (n, m))
+    out["emission angle"] = angles
+    return out
+
+
+def _structure(
+    residual: np.ndarray, weight: np.ndarray, variables: dict[str, np.ndarray], bins: int = 10
+) -> dict[str, dict[str, Any]]:
+    """χ² test per variable of binned means of the noise-normalised residual.
+
+    Under a complete model u = r·√w is white with unit variance per axis, so the mean of
+    n values in a bin has variance 1/n and ``Σ_b n_b |ū_b|²`` is χ² with 3·bins dof.
+    """
+    use = np.isfinite(residual[..., 0]) & (weight > 0)
+    u = residual[use] * np.sqrt(weight[use])[:, None]
+    out = {}
+    for name, values in variables.items():
+        v = np.asarray(values)[use]
+        ok = np.isfinite(v)
+        if ok.sum() < 20:
+            continue
+        uniq = np.unique(v[ok])
+        if uniq.size <= bins:
+            labels = np.searchsorted(uniq, v[ok])
+        else:
+            edges = np.unique(np.quantile(v[ok], np.linspace(0, 1, bins + 1)))
+            labels = np.clip(np.searchsorted(edges, v[ok], side="right") - 1, 0, edges.size - 2)
+        k = labels.max() + 1
+        cnt = np.bincount(labels, minlength=k)
+        sums = np.stack([np.bincount(labels, u[ok][:, a], minlength=k) for a in range(3)], 1)
+        good = cnt > 0
+        stat = float(np.sum(sums[good] ** 2 / cnt[good, None]))
+        dof = 3 * int(good.sum())
+        out[name] = {"statistic": stat, "dof": dof, "p_value": float(stats.chi2.sf(stat, dof))}
+    n_tests = max(1, len(out))
+    for v in out.values():
+        v["significant"] = bool(v["p_value"] < ALPHA_STRUCTURE / n_tests)
+    return out
+
+
+def _binned_rms(residual, variables, name, bins=20):
+    """(bin centres, residual RMS [m]) of the 3-D residual against one variable."""
+    use = np.isfinite(residual[..., 0])
+    v = np.asarray(variables[name])[use]
+    r2 = np.sum(residual[use] ** 2, -1)
+    ok = np.isfinite(v)
+    v, r2 = v[ok], r2[ok]
+    edges = np.unique(np.quantile(v, np.linspace(0, 1, bins + 1)))
+    lab = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, edges.size - 2)
+    k = edges.size - 1
+    cnt = np.bincount(lab, minlength=k)
+    rms = np.sqrt(np.bincount(lab, r2, minlength=k) / np.maximum(cnt, 1))
+    centre = np.bincount(lab, v, minlength=k) / np.maximum(cnt, 1)
+    return centre[cnt > 0], rms[cnt > 0]
+
+
+# ----------------------------------------------------------------------------- workflow
+
+
+def _gap(res, var3: np.ndarray) -> float:
+    r = res.residuals
+    use = np.isfinite(r[..., 0]) & np.isfinite(var3)
+    return float(np.sqrt(max(0.0, np.mean(np.sum(r[use] ** 2, -1)) - np.mean(var3[use]))))
+
+
+def _effect_parameters(res, effect: str) -> dict[str, tuple[float, float]]:
+    sig = res.sigma
+    fixed = set(res.identifiability.get("fixed_parameters", []))
+    out = {}
+    for name in res.parameter_names:
+        if name == effect or name.startswith(effect + "["):
+            if name in fixed:
+                continue
+            out[name] = (float(_value_of(res, name)), float(sig.get(name, np.nan)))
+    return out
+
+
+def _value_of(res, pname: str) -> float:
+    """Value of a covariance parameter name like ``joint_offset[2]`` or ``link_length[1].a``."""
+    base, _, rest = pname.partition("[")
+    v = np.asarray(res.effects.get(base, 0.0), float)
+    if not rest:
+        return float(v)
+    idx, _, comp = rest.partition("]")
+    v = v[int(idx)]
+    if comp.startswith("."):
+        v = v[{"d": 0, "a": 1}.get(comp[1:], {"x": 0, "y": 1, "z": 2}.get(comp[1:], 0))]
+    return float(v)
+
+
+def _free_count(res, effect: str) -> int:
+    return len(_effect_parameters(res, effect))
+
+
+def discover(
+    rec: Recording,
+    *,
+    candidates: tuple[str, ...] | None = None,
+    max_steps: int = 4,
+    screen: bool = True,
+    progress=None,
+) -> DiscrepancyResult:
+    """Run the discrepancy workflow on `rec` (needs a robot log, a tool and static dwells).
+
+    `candidates`: effect names to try (default: the whole library of DESIGN section 7).
+    `screen`: the first round refits every candidate; later rounds only those that were
+    significant in the first (each refit with a new set of effects costs a compilation).
+    An effect masked in the first round that this misses still shows up in the final
+    structure test, as unexplained structure.
+    """
+    from ..estimate.calibration import fit
+
+    say = progress or (lambda _msg: None)
+    candidates = tuple(EFFECT_NAMES if candidates is None else candidates)
+    bad = [c for c in candidates if c not in EFFECT_NAMES]
+    if bad:
+        raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
+    if rec.temperature is None:
+        candidates = tuple(c for c in candidates if c != "thermal_drift") + (
+            ("thermal_drift",) if "thermal_drift" in candidates else ()
+        )
+    say("emission angles and the noise of the static segments")
+    angles = _observation_angles(rec)
+    centre, sigma = static_noise(rec, angles)
+    sig_obs = np.interp(np.nan_to_num(angles, nan=float(np.median(centre))), centre, sigma)
+    weights = np.where(rec.visible, 1.0 / sig_obs**2, 0.0)
+    var3 = np.where(rec.visible, 3.0 * sig_obs**2, np.nan)
+    noise = float(np.sqrt(np.nanmean(var3) / 3.0))
+    variables = _frame_variables(rec, angles)
+
+    say("nominal fit")
+    current = fit(rec, weights=weights)
+    n_obs = int(np.isfinite(current.residuals[..., 0]).sum()) * 3
+    gap0 = _gap(current, var3)
+    gaps = [gap0]
+    localisation = _structure(current.residuals, weights, variables)
+    before = {
+        k: _binned_rms(current.residuals, variables, k)
+        for k in ("time", "joint 2", "emission angle")
+        if k in variables
+    }
+    steps: list[Step] = []
+    named: list[str] = []
+    for _ in range(max_steps):
+        scores = {}
+        fits = {}
+        remaining = [c for c in candidates if c not in named]
+        for cand in remaining:
+            say(f"trying {cand}")
+            try:
+                r = fit(rec, estimate=(*named, cand), weights=weights, init=current)
+            except UserError:
+                continue
+            k = _free_count(r, cand)
+            if k == 0:
+                continue
+            lr = float(current.chi2 - r.chi2)
+            scores[cand] = {
+                "likelihood_ratio": lr,
+                "dof": k,
+                "p_value": float(stats.chi2.sf(max(lr, 0.0), k)),
+                "delta_bic": float(lr - k * np.log(n_obs)),
+            }
+            fits[cand] = r
+        significant = {
+            c: s
+            for c, s in scores.items()
+            if s["p_value"] < ALPHA / max(1, len(remaining)) and s["delta_bic"] > 0
+        }
+        if not significant:
+            break
+        if screen and not steps:
+            candidates = tuple(significant)
+        best = max(significant, key=lambda c: significant[c]["delta_bic"])
+        current = fits[best]
+        named.append(best)
+        gaps.append(_gap(current, var3))
+        steps.append(
+            Step(best, _effect_parameters(current, best), gaps[-1], significant[best], scores)
+        )
+        say(f"named {best}: gap {gaps[-2] * 1e6:.1f} → {gaps[-1] * 1e6:.1f} µm")
+    structure = _structure(current.residuals, weights, variables)
+    after = {k: _binned_rms(current.residuals, variables, k) for k in before}
+    unexplained = any(v["significant"] for v in structure.values())
+    return DiscrepancyResult(
+        gap_before_m=gap0,
+        steps=steps,
+        gap_after_m=gaps[-1],
+        unexplained=unexplained,
+        structure=structure,
+        localisation=localisation,
+        noise_sigma_m=noise,
+        calibration=current,
+        gaps=gaps,
+        residual_before=before,
+        residual_after=after,
+    )
