@@ -301,7 +301,8 @@ def discover(
     `screen`: the first round refits every candidate; later rounds only those that were
     significant in the first (each refit with a new set of effects costs a compilation).
     An effect masked in the first round that this misses still shows up in the final
-    structure test, as unexplained structure.
+    structure test, as unexplained structure. After each named effect the residual is
+    tested for structure against every variable; when none is left the search stops.
     """
     from ..estimate.calibration import fit
 
@@ -374,6 +375,11 @@ def discover(
             Step(best, _effect_parameters(current, best), gaps[-1], significant[best], scores)
         )
         say(f"named {best}: gap {gaps[-2] * 1e6:.1f} → {gaps[-1] * 1e6:.1f} µm")
+        # nothing structured left against any variable: no further effect can stand out
+        if not any(
+            v["significant"] for v in _structure(current.residuals, weights, variables).values()
+        ):
+            break
     structure = _structure(current.residuals, weights, variables)
     after = {k: _binned_rms(current.residuals, variables, k) for k in before}
     unexplained = any(v["significant"] for v in structure.values())
