@@ -1,12 +1,14 @@
 """Discrepancy discovery (DESIGN section 7): what is the nominal model missing?
 
 Fit the nominal model (bundle calibration); compare prediction and measurement; localise
-the disagreement (time, program segment, joint angles, speed, LED, emission angle); refit
-with each candidate effect of the library added and score it with a likelihood-ratio test
-and BIC, with the noise level estimated from the data's static segments (not from the
-fit's own residual, which contains what is missing); name the best significant effect,
-add it and repeat until nothing significant remains; finally test whether structured
-residual is left and, if so, report where it lives — never forcing a library name on it.
+the disagreement (time, program segment, joint angles, speed, LED, emission angle); score
+every candidate effect of the library at once with Rao's score test (the Gauss–Newton
+predicted χ² decrease of adding it, χ²(k) under the null) and BIC, with the noise level
+estimated from the data's static segments (not from the fit's own residual, which
+contains what is missing); refit with the best significant one and name it when the
+refit's likelihood-ratio test confirms it; repeat until nothing significant remains;
+finally test whether structured residual is left and, if so, report where it lives —
+never forcing a library name on it.
 
 The **gap** is the RMS of the systematic disagreement with the noise taken out:
 ``sqrt(max(0, mean|r|² − mean 3σ̂²))`` over all LED observations [m].
@@ -287,34 +289,39 @@ def _free_count(res, effect: str) -> int:
     return len(_effect_parameters(res, effect))
 
 
+def _test(value: float, dof: int, n_obs: int, **extra) -> dict[str, Any]:
+    return {
+        **extra,
+        "dof": dof,
+        "p_value": float(stats.chi2.sf(max(value, 0.0), dof)),
+        "delta_bic": float(value - dof * np.log(n_obs)),
+    }
+
+
 def discover(
     rec: Recording,
     *,
     candidates: tuple[str, ...] | None = None,
     max_steps: int = 4,
-    screen: bool = True,
     progress=None,
 ) -> DiscrepancyResult:
     """Run the discrepancy workflow on `rec` (needs a robot log, a tool and static dwells).
 
     `candidates`: effect names to try (default: the whole library of DESIGN section 7).
-    `screen`: the first round refits every candidate; later rounds only those that were
-    significant in the first (each refit with a new set of effects costs a compilation).
-    An effect masked in the first round that this misses still shows up in the final
-    structure test, as unexplained structure. After each named effect the residual is
-    tested for structure against every variable; when none is left the search stops.
+    Each round scores every remaining candidate at once with Rao's score test
+    (`robtraj.estimate.calibration.score_effects`: one pass over the recording, one
+    compilation); the significant ones are refitted in order of their ΔBIC and the first
+    whose refit confirms it by the likelihood-ratio test is named. After each named
+    effect the residual is tested for structure against every variable; when none is
+    left the search stops.
     """
-    from ..estimate.calibration import fit
+    from ..estimate.calibration import fit, score_effects
 
     say = progress or (lambda _msg: None)
     candidates = tuple(EFFECT_NAMES if candidates is None else candidates)
     bad = [c for c in candidates if c not in EFFECT_NAMES]
     if bad:
         raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
-    if rec.temperature is None:
-        candidates = tuple(c for c in candidates if c != "thermal_drift") + (
-            ("thermal_drift",) if "thermal_drift" in candidates else ()
-        )
     say("emission angles and the noise of the static segments")
     angles = _observation_angles(rec)
     centre, sigma = static_noise(rec, angles)
@@ -338,42 +345,39 @@ def discover(
     steps: list[Step] = []
     named: list[str] = []
     for _ in range(max_steps):
-        scores = {}
-        fits = {}
         remaining = [c for c in candidates if c not in named]
-        for cand in remaining:
-            say(f"trying {cand}")
-            try:
-                r = fit(rec, estimate=(*named, cand), weights=weights, init=current)
-            except UserError:
-                continue
+        if not remaining:
+            break
+        say(f"score test of {len(remaining)} candidate effects")
+        alpha = ALPHA / len(remaining)
+        scores = {
+            c: _test(v["statistic"], v["dof"], n_obs, test="score", statistic=v["statistic"])
+            for c, v in score_effects(rec, current, remaining, weights=weights).items()
+            if v["dof"] > 0
+        }
+        significant = [
+            c
+            for c in sorted(scores, key=lambda c: -scores[c]["delta_bic"])
+            if scores[c]["p_value"] < alpha and scores[c]["delta_bic"] > 0
+        ]
+        accepted = None
+        for cand in significant:
+            say(f"refitting with {cand}")
+            r = fit(rec, estimate=(*named, cand), weights=weights, init=current)
             k = _free_count(r, cand)
             if k == 0:
                 continue
             lr = float(current.chi2 - r.chi2)
-            scores[cand] = {
-                "likelihood_ratio": lr,
-                "dof": k,
-                "p_value": float(stats.chi2.sf(max(lr, 0.0), k)),
-                "delta_bic": float(lr - k * np.log(n_obs)),
-            }
-            fits[cand] = r
-        significant = {
-            c: s
-            for c, s in scores.items()
-            if s["p_value"] < ALPHA / max(1, len(remaining)) and s["delta_bic"] > 0
-        }
-        if not significant:
+            score = _test(lr, k, n_obs, likelihood_ratio=lr)
+            if score["p_value"] < alpha and score["delta_bic"] > 0:
+                accepted = (cand, r, score)
+                break
+        if accepted is None:
             break
-        if screen and not steps:
-            candidates = tuple(significant)
-        best = max(significant, key=lambda c: significant[c]["delta_bic"])
-        current = fits[best]
+        best, current, score = accepted
         named.append(best)
         gaps.append(_gap(current, var3))
-        steps.append(
-            Step(best, _effect_parameters(current, best), gaps[-1], significant[best], scores)
-        )
+        steps.append(Step(best, _effect_parameters(current, best), gaps[-1], score, scores))
         say(f"named {best}: gap {gaps[-2] * 1e6:.1f} → {gaps[-1] * 1e6:.1f} µm")
         # nothing structured left against any variable: no further effect can stand out
         if not any(

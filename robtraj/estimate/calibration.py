@@ -68,6 +68,7 @@ __all__ = [
     "residual_fn",
     "residuals",
     "robot_world_hand_eye",
+    "score_effects",
 ]
 
 ROBUST = ("huber", "cauchy")
@@ -286,105 +287,16 @@ def fit(
     **Returns:** a `CalibrationResult`. Raises `UserError` for unusable input.
     """
     say = progress or (lambda _msg: None)
-    estimate = tuple(dict.fromkeys(estimate))
-    bad = [e for e in estimate if e not in EFFECT_NAMES]
-    if bad:
-        raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
     if robust is not None and robust not in ROBUST:
         raise UserError(f"unknown robust loss {robust!r} (choose from {', '.join(ROBUST)})")
     if solver not in ("chunked", "optimistix"):
         raise UserError(f"unknown solver {solver!r}")
-    free = tuple(n for n in EFFECT_NAMES if n in estimate)
-
-    reference = start = None
-    if init is not None and recording.tool is not None:
-        reference = _per_tool_led(recording, init.led_ids, init.gauge_reference)
-        start = _per_tool_led(recording, init.led_ids, init.constellation)
-    tau0 = 0.0 if init is None else init.time_offset
-    data = prepare(recording, time_offset=tau0, constellation=reference)
-    if start is not None:
-        col = {int(i): k for k, i in enumerate(recording.tool.led_ids)}
-        start = start[[col[int(i)] for i in data.led_ids]]
-    else:
-        start = data.reference
-    n_joints = data.robot.n_joints
-    effects0 = Effects.zeros(n_joints)
-    if init is not None:
-        for k, v in init.effects.items():
-            effects0 = effects0.with_value(k, v)
-
-    say(f"{data.n_frames} frames, {data.n_leds} LEDs: closed-form initialisation")
-    if init is None:
-        cft, bff, _ = pose_pairs(data, effects0, data.reference)
-        z, x = robot_world_hand_eye(cft, bff)
-    else:
-        z, x = _wxyz_xyz(init.camera_from_base), _wxyz_xyz(init.flange_from_tool)
-    initial = {"camera_from_base": _pose_of(z), "flange_from_tool": _pose_of(x)}
-
-    probe = _probe_frames(recording, data, tau0)
-    gauge = "probe" if probe is not None else "reference_constellation"
-    rows = np.repeat(data.led_seen, 3)  # unseen LEDs: no parameters, kept at the reference
-    basis = np.zeros((3 * data.n_leds, 0))
-    if probe is not None:
-        basis = np.eye(3 * data.n_leds)[:, rows]
-    else:
-        basis = np.zeros((3 * data.n_leds, 3 * int(data.led_seen.sum()) - 6))
-        basis[rows] = _gauge_basis(data.reference[data.led_seen])
-    kinematic = any(n in cp.KINEMATIC_EFFECTS for n in free)
-    problem = BundleProblem(
-        robot=data.robot,
-        camera_from_base=jnp.asarray(z),
-        flange_from_tool=jnp.asarray(x),
-        constellation=jnp.asarray(start),
-        gauge_basis=jnp.asarray(basis),
-        normals=jnp.asarray(data.normals),
-        effects=effects0,
-        log_time=jnp.asarray(data.log_time),
-        joints=jnp.asarray(data.joints),
-        free=free,
-        kinematic=kinematic,
-        rigid_leds=not any(n in cp.LED_EFFECTS for n in free)
-        and all(float(np.max(np.abs(getattr(effects0, n)))) == 0.0 for n in cp.LED_EFFECTS),
-    )
-    gnames = _global_names(effects0, free)
-    q = len(gnames)
-    g0 = jnp.zeros(q)
-    size = _chunk_size(data.n_frames, chunk)
-
-    if weights is not None:
-        w_user = _user_weights(recording, data, weights)
-    else:
-        w_user = data.seen.astype(float)
-    chunks = _chunks(data, np.sqrt(w_user), size)
-    if not kinematic:
-        fl = cp.fixed_flange_poses(data.robot, effects0, problem.log_time, problem.joints, chunks)
-        chunks = eqx.tree_at(lambda f: f.base_from_flange, chunks, fl)
-
-    def probe_extra(pr):
-        if probe is None:
-            return None
-        prk = _kinematic_copy(pr)
-        h, b, c = _probe_terms(g0, _jit_view(prk), probe[0], probe[1])
-        return np.asarray(h), np.asarray(b), float(c)
-
-    def normal_fn(pr):
-        parts = cp.normal_equations(g0, pr.constellation, _jit_view(pr), state["chunks"])
-        return lm.assemble(parts, basis, probe_extra(pr))
-
-    def cost_fn(pr):
-        c = float(cp.cost(g0, pr.constellation, _jit_view(pr), state["chunks"]))
-        extra = probe_extra(pr)
-        return c + (extra[2] if extra else 0.0)
-
-    state = {"chunks": chunks}
-    names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
-    droppable = np.array([i >= 12 and i < q for i in range(len(names_theta))])
-    normal0 = normal_fn(problem)
+    st = _setup(recording, estimate, init, weights, chunk, say)
+    data, problem, basis, probe, state = st.data, st.problem, st.basis, st.probe, st.state
+    normal_fn, cost_fn, probe_extra, g0, q = st.normal_fn, st.cost_fn, st.probe_extra, st.g0, st.q
+    free, gnames, w_user, gauge, initial = st.free, st.gnames, st.w_user, st.gauge, st.initial
     free_mask, ident = lm.identifiability(
-        normal0.H,
-        _phi_names_for(names_theta, q, basis, data),
-        np.ones(len(names_theta), bool),
-        droppable,
+        st.normal0.H, st.phi_names, np.ones(len(st.names_theta), bool), st.droppable
     )
     if ident["dropped"]:
         say("not identifiable, fixed: " + ", ".join(d["parameter"] for d in ident["dropped"]))
@@ -504,6 +416,212 @@ def fit(
         initial=initial,
         unseen_leds=data.unseen_leds,
         robust=robust,
+    )
+
+
+def score_effects(
+    recording: Recording,
+    current: CalibrationResult,
+    candidates: Sequence[str],
+    *,
+    weights: np.ndarray | None = None,
+    chunk: int | None = None,
+) -> dict[str, dict[str, Any]]:
+    """Rao's score (Lagrange-multiplier) test of adding each candidate effect to `current`.
+
+    The normal equations ``H = JᵀWJ``, ``b = JᵀWr`` are accumulated once at `current`'s
+    estimate with every effect of the library free. For a candidate with entries C added
+    to `current`'s free parameters P (poses, constellation, estimated effects), F = P ∪ C,
+    the statistic is the Gauss–Newton predicted decrease of χ²,
+    ``bᵀ H⁺_FF b − bᵀ H⁺_PP b``: the likelihood ratio of a model linear in the new
+    entries, χ²(k) under the null with k the rank gained. Entries of C that lie in null
+    directions of ``H_FF`` (not identifiable next to P, e.g. joint 1's offset against the
+    camera's yaw) are left out of k and listed in ``fixed``.
+
+    One pass over the recording serves every candidate, and since the problem always has
+    all effects free it compiles once per recording shape — where refitting costs a
+    compilation and a Levenberg–Marquardt run per candidate.
+
+    **Arguments:** `weights` as in `fit` (default: `current.weights`).
+
+    **Returns:** ``{effect: {"statistic", "dof", "parameters", "fixed"}}`` (χ² units).
+    """
+    bad = [e for e in candidates if e not in EFFECT_NAMES]
+    if bad:
+        raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
+    w = current.weights if weights is None else weights
+    st = _setup(recording, EFFECT_NAMES, current, w, chunk, lambda _m: None)
+    H, b = st.normal0.H, st.normal0.b
+    fixed_now = set(current.identifiability.get("fixed_parameters", []))
+    names = st.names_theta
+    mine = set(current.estimated)
+
+    def entries(effect):
+        return [i for i, n in enumerate(names[: st.q]) if n == effect or n.startswith(effect + "[")]
+
+    base = np.zeros(len(names), bool)
+    base[:12] = True
+    base[st.q :] = True
+    for e in mine:
+        for i in entries(e):
+            base[i] = names[i] not in fixed_now
+    inv_p, rank_p = lm.pinv_scaled(H, base)
+    stat_p = float(b @ inv_p @ b)
+    out = {}
+    for effect in dict.fromkeys(candidates):
+        cols = [i for i in entries(effect) if not base[i]]
+        free = base.copy()
+        free[cols] = True
+        droppable = np.zeros(len(names), bool)
+        droppable[cols] = True
+        free, ident = lm.identifiability(H, st.phi_names, free, droppable)
+        inv_f, rank_f = lm.pinv_scaled(H, free)
+        out[effect] = {
+            "statistic": max(0.0, float(b @ inv_f @ b) - stat_p),
+            "dof": int(rank_f - rank_p),
+            "parameters": [names[i] for i in cols if free[i]],
+            "fixed": [d["parameter"] for d in ident["dropped"]],
+        }
+    return out
+
+
+@dataclasses.dataclass
+class _Setup:
+    """A bundle problem ready for Levenberg–Marquardt (what `fit` and `score_effects`
+    share): data, problem, gauge, chunks (`state`), normal-equation and cost functions,
+    θ names and the normal equations at the start (`normal0`)."""
+
+    data: CalibrationData
+    problem: BundleProblem
+    basis: np.ndarray
+    probe: Any
+    gauge: str
+    initial: dict
+    free: tuple[str, ...]
+    gnames: list[str]
+    q: int
+    g0: Any
+    w_user: np.ndarray
+    state: dict
+    normal_fn: Callable
+    cost_fn: Callable
+    probe_extra: Callable
+    names_theta: list[str]
+    phi_names: list[str]
+    droppable: np.ndarray
+    normal0: lm.Normal
+
+
+def _setup(recording, estimate, init, weights, chunk, say) -> _Setup:
+    estimate = tuple(dict.fromkeys(estimate))
+    bad = [e for e in estimate if e not in EFFECT_NAMES]
+    if bad:
+        raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
+    free = tuple(n for n in EFFECT_NAMES if n in estimate)
+
+    reference = start = None
+    if init is not None and recording.tool is not None:
+        reference = _per_tool_led(recording, init.led_ids, init.gauge_reference)
+        start = _per_tool_led(recording, init.led_ids, init.constellation)
+    tau0 = 0.0 if init is None else init.time_offset
+    data = prepare(recording, time_offset=tau0, constellation=reference)
+    if start is not None:
+        col = {int(i): k for k, i in enumerate(recording.tool.led_ids)}
+        start = start[[col[int(i)] for i in data.led_ids]]
+    else:
+        start = data.reference
+    n_joints = data.robot.n_joints
+    effects0 = Effects.zeros(n_joints)
+    if init is not None:
+        for k, v in init.effects.items():
+            effects0 = effects0.with_value(k, v)
+
+    say(f"{data.n_frames} frames, {data.n_leds} LEDs: closed-form initialisation")
+    if init is None:
+        cft, bff, _ = pose_pairs(data, effects0, data.reference)
+        z, x = robot_world_hand_eye(cft, bff)
+    else:
+        z, x = _wxyz_xyz(init.camera_from_base), _wxyz_xyz(init.flange_from_tool)
+    initial = {"camera_from_base": _pose_of(z), "flange_from_tool": _pose_of(x)}
+
+    probe = _probe_frames(recording, data, tau0)
+    gauge = "probe" if probe is not None else "reference_constellation"
+    rows = np.repeat(data.led_seen, 3)  # unseen LEDs: no parameters, kept at the reference
+    basis = np.zeros((3 * data.n_leds, 0))
+    if probe is not None:
+        basis = np.eye(3 * data.n_leds)[:, rows]
+    else:
+        basis = np.zeros((3 * data.n_leds, 3 * int(data.led_seen.sum()) - 6))
+        basis[rows] = _gauge_basis(data.reference[data.led_seen])
+    kinematic = any(n in cp.KINEMATIC_EFFECTS for n in free)
+    problem = BundleProblem(
+        robot=data.robot,
+        camera_from_base=jnp.asarray(z),
+        flange_from_tool=jnp.asarray(x),
+        constellation=jnp.asarray(start),
+        gauge_basis=jnp.asarray(basis),
+        normals=jnp.asarray(data.normals),
+        effects=effects0,
+        log_time=jnp.asarray(data.log_time),
+        joints=jnp.asarray(data.joints),
+        free=free,
+        kinematic=kinematic,
+        rigid_leds=not any(n in cp.LED_EFFECTS for n in free)
+        and all(float(np.max(np.abs(getattr(effects0, n)))) == 0.0 for n in cp.LED_EFFECTS),
+    )
+    gnames = _global_names(effects0, free)
+    q = len(gnames)
+    g0 = jnp.zeros(q)
+    size = _chunk_size(data.n_frames, chunk)
+
+    if weights is not None:
+        w_user = _user_weights(recording, data, weights)
+    else:
+        w_user = data.seen.astype(float)
+    chunks = _chunks(data, np.sqrt(w_user), size)
+    if not kinematic:
+        fl = cp.fixed_flange_poses(data.robot, effects0, problem.log_time, problem.joints, chunks)
+        chunks = eqx.tree_at(lambda f: f.base_from_flange, chunks, fl)
+
+    def probe_extra(pr):
+        if probe is None:
+            return None
+        prk = _kinematic_copy(pr)
+        h, b, c = _probe_terms(g0, _jit_view(prk), probe[0], probe[1])
+        return np.asarray(h), np.asarray(b), float(c)
+
+    def normal_fn(pr):
+        parts = cp.normal_equations(g0, pr.constellation, _jit_view(pr), state["chunks"])
+        return lm.assemble(parts, basis, probe_extra(pr))
+
+    def cost_fn(pr):
+        c = float(cp.cost(g0, pr.constellation, _jit_view(pr), state["chunks"]))
+        extra = probe_extra(pr)
+        return c + (extra[2] if extra else 0.0)
+
+    state = {"chunks": chunks}
+    names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
+    droppable = np.array([i >= 12 and i < q for i in range(len(names_theta))])
+    return _Setup(
+        data=data,
+        problem=problem,
+        basis=basis,
+        probe=probe,
+        gauge=gauge,
+        initial=initial,
+        free=free,
+        gnames=gnames,
+        q=q,
+        g0=g0,
+        w_user=w_user,
+        state=state,
+        normal_fn=normal_fn,
+        cost_fn=cost_fn,
+        probe_extra=probe_extra,
+        names_theta=names_theta,
+        phi_names=_phi_names_for(names_theta, q, basis, data),
+        droppable=droppable,
+        normal0=normal_fn(problem),
     )
 
 
