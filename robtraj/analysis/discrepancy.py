@@ -48,11 +48,14 @@ class Step:
 @dataclasses.dataclass(frozen=True)
 class DiscrepancyResult:
     """What the workflow found. `structure` lists, per variable, the residual-structure
-    test after the last step (`statistic`, `dof`, `p_value`, `significant`)."""
+    test after the last step (`statistic`, `dof`, `p_value`, `significant`).
+    `gap_floor_m` is the gap a complete model reaches by chance with this noise and data
+    (two standard errors of the gap's estimate): a final gap below it is noise."""
 
     gap_before_m: float
     steps: list[Step]
     gap_after_m: float
+    gap_floor_m: float
     unexplained: bool
     structure: dict[str, dict[str, Any]]
     localisation: dict[str, dict[str, Any]]
@@ -92,6 +95,7 @@ class DiscrepancyResult:
                 for s in self.steps
             ],
             "gap_after_m": self.gap_after_m,
+            "gap_floor_m": self.gap_floor_m,
             "unexplained": self.unexplained,
             "unexplained_where": self.unexplained_where,
             "noise_sigma_m": self.noise_sigma_m,
@@ -124,6 +128,12 @@ def static_noise(rec: Recording, angles: np.ndarray) -> tuple[np.ndarray, np.nda
     segment mean is noise alone. Returns (bin centres [rad], σ per bin); the bins are
     angle quantiles of the static observations.
     """
+    centre, sigma, _ = _static_noise(rec, angles)
+    return centre, sigma
+
+
+def _static_noise(rec: Recording, angles: np.ndarray):
+    """`static_noise` plus the relative standard error of the per-bin variances."""
     from ..estimate import static_segments
 
     pos = np.asarray(rec.positions)
@@ -150,7 +160,8 @@ def static_noise(rec: Recording, angles: np.ndarray) -> tuple[np.ndarray, np.nda
     idx = np.clip(np.searchsorted(edges, ang, side="right") - 1, 0, 7)
     centre = np.array([np.median(ang[idx == k]) for k in range(8)])
     var = np.array([np.mean(dev2[idx == k]) for k in range(8)])
-    return centre, np.sqrt(var)
+    rel_se = np.array([np.std(dev2[idx == k]) / np.sqrt((idx == k).sum()) for k in range(8)])
+    return centre, np.sqrt(var), rel_se / var
 
 
 def _observation_angles(rec: Recording) -> np.ndarray:
@@ -260,6 +271,18 @@ def _gap(res, var3: np.ndarray) -> float:
     return float(np.sqrt(max(0.0, np.mean(np.sum(r[use] ** 2, -1)) - np.mean(var3[use]))))
 
 
+def _gap_floor(res, var3: np.ndarray, rel_se_var: float) -> float:
+    """The gap a complete model reaches by chance [m]: two standard errors of
+    ``mean|r|² − mean 3σ̂²`` (of the residual's mean square, and of the static-segment
+    noise estimate with relative standard error `rel_se_var`), under the root."""
+    r = res.residuals
+    use = np.isfinite(r[..., 0]) & np.isfinite(var3)
+    r2 = np.sum(r[use] ** 2, -1)
+    se_r = np.std(r2) / np.sqrt(r2.size)
+    se_v = np.mean(var3[use]) * rel_se_var
+    return float(np.sqrt(2.0 * np.hypot(se_r, se_v)))
+
+
 def _effect_parameters(res, effect: str) -> dict[str, tuple[float, float]]:
     sig = res.sigma
     fixed = set(res.identifiability.get("fixed_parameters", []))
@@ -324,7 +347,7 @@ def discover(
         raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
     say("emission angles and the noise of the static segments")
     angles = _observation_angles(rec)
-    centre, sigma = static_noise(rec, angles)
+    centre, sigma, rel_se = _static_noise(rec, angles)
     sig_obs = np.interp(np.nan_to_num(angles, nan=float(np.median(centre))), centre, sigma)
     weights = np.where(rec.visible, 1.0 / sig_obs**2, 0.0)
     var3 = np.where(rec.visible, 3.0 * sig_obs**2, np.nan)
@@ -391,6 +414,7 @@ def discover(
         gap_before_m=gap0,
         steps=steps,
         gap_after_m=gaps[-1],
+        gap_floor_m=_gap_floor(current, var3, float(np.sqrt(np.sum(rel_se**2)) / rel_se.size)),
         unexplained=unexplained,
         structure=structure,
         localisation=localisation,

@@ -50,7 +50,10 @@ def run(args: argparse.Namespace) -> int:
             f"+ {s['effect']}: gap {s['gap_after_m'] * 1e6:.1f} µm "
             f"(ΔBIC {s['score']['delta_bic']:.0f}); {params}"
         )
-    print(f"gap after: {doc['gap_after_m'] * 1e6:.1f} µm")
+    print(
+        f"gap after: {doc['gap_after_m'] * 1e6:.1f} µm "
+        f"(what a complete model leaves by chance: {doc['gap_floor_m'] * 1e6:.1f} µm)"
+    )
     if doc["unexplained"]:
         print(f"unexplained structure remains, against: {', '.join(doc['unexplained_where'])}")
     else:
