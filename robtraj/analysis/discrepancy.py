@@ -110,7 +110,11 @@ class DiscrepancyResult:
         out = Path(out_dir)
         return [
             gap_figure(
-                out / "discrepancy_gap.png", ["nominal", *self.named], self.gaps, self.noise_sigma_m
+                out / "discrepancy_gap.png",
+                ["nominal", *self.named],
+                self.gaps,
+                self.noise_sigma_m,
+                self.gap_floor_m,
             ),
             structure_figure(
                 out / "discrepancy_structure.png", self.residual_before, self.residual_after

@@ -9,12 +9,22 @@ import numpy as np
 from ._figures import _save, plt
 
 
-def gap_figure(path, labels: list[str], gaps: list[float], noise: float) -> Path:
-    """Gap [m → µm] after each step, with the per-axis noise level for scale."""
+def gap_figure(
+    path, labels: list[str], gaps: list[float], noise: float, floor: float | None = None
+) -> Path:
+    """Gap [m → µm] after each step, with the per-axis noise level for scale and the
+    gap a complete model leaves by chance (`floor`)."""
     fig, ax = plt.subplots(figsize=(7, 3.8), constrained_layout=True)
     x = np.arange(len(gaps))
     ax.bar(x, np.asarray(gaps) * 1e6, color="C0")
     ax.axhline(noise * 1e6, color="C3", ls="--", label=f"noise σ per axis ({noise * 1e6:.1f} µm)")
+    if floor is not None:
+        ax.axhline(
+            floor * 1e6,
+            color="C2",
+            ls=":",
+            label=f"floor of a complete model ({floor * 1e6:.1f} µm)",
+        )
     ax.set_xticks(x, ["nominal"] + [f"+ {n}" for n in labels[1:]], rotation=20)
     ax.set_ylabel("gap (systematic RMS) [µm]")
     ax.set_title("Model–measurement gap, step by step")
