@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from robtraj.analysis import _pose_fit as pf
+
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ipa-robot-accuracy"
 pytestmark = pytest.mark.skipif(
     not (DATA / "Series_B" / "measurements_joint_configurations.csv").is_file(),
@@ -77,15 +79,14 @@ def test_calibration_reports_and_fixes_the_ur10_degeneracies(workflow):
 
 
 def test_weights_come_from_the_tracker_std_where_present(series):
-    from robtraj.analysis import real_data as rd
 
     assert series["A"].std is None and series["B"].std is not None
-    w = rd._weights(series["B"], (1e-6, 1e-6))
+    w = pf._weights(series["B"], (1e-6, 1e-6))
     assert np.ptp(w[:, 0]) > 0  # per-pose weights from Series B's reported std
     std = series["B"].std
     np.testing.assert_allclose(w[:, 0], 1 / (1e-12 + np.mean(std[:, :3] ** 2, 1)))
     np.testing.assert_allclose(w[:, 3], 1 / (1e-12 + np.mean(std[:, 3:] ** 2, 1)))
-    wa = rd._weights(series["A"], (1e-6, 1e-6))
+    wa = pf._weights(series["A"], (1e-6, 1e-6))
     assert np.ptp(wa[:, 0]) == 0
 
 
@@ -177,11 +178,11 @@ def test_pose_model_is_the_package_forward_model(series):
 
     s = series["B"]
     rng = np.random.default_rng(0)
-    theta = rng.normal(0, 1e-3, rd.N_PARAMS)
-    theta[rd._SL["joint_compliance"]] = rng.normal(0, 1e-5, 6)
+    theta = rng.normal(0, 1e-3, pf.N_PARAMS)
+    theta[pf._SL["joint_compliance"]] = rng.normal(0, 1e-5, 6)
     z0, x0 = s.start
     pred = np.asarray(
-        rd._predict_jit(
+        pf._predict_jit(
             jnp.asarray(theta),
             jnp.asarray(z0),
             jnp.asarray(x0),
@@ -190,7 +191,7 @@ def test_pose_model_is_the_package_forward_model(series):
             jnp.asarray(s.torque),
         )
     )
-    eff = rd._effects_of(jnp.asarray(theta))
+    eff = pf._effects_of(jnp.asarray(theta))
     q = jnp.asarray(s.joints)
     fl = jax.jit(flange_poses)(ur10(), eff, q, jnp.zeros_like(q))
     z = jaxlie.SE3(jnp.asarray(z0)) @ jaxlie.SE3.exp(jnp.asarray(theta[:6]))
@@ -202,8 +203,8 @@ def test_pose_model_is_the_package_forward_model(series):
     assert np.max(ae) < 1e-10
     # the rigid-only fast path (nominal fits, cross-series refits) is the same residual
     args = tuple(jnp.asarray(a) for a in (z0, x0, s.joints, s.drift_variable, s.torque, s.measured))
-    full = rd._Problem(args, np.ones(rd.N_PARAMS, bool)).residual(theta)
-    fast = rd._Problem(args, np.arange(rd.N_PARAMS) < 12).residual(theta)
+    full = pf._Problem(args, np.ones(pf.N_PARAMS, bool)).residual(theta)
+    fast = pf._Problem(args, np.arange(pf.N_PARAMS) < 12).residual(theta)
     np.testing.assert_allclose(fast, full, atol=1e-12)
 
 

@@ -1,0 +1,573 @@
+"""Pose-level fit of a UR10 to laser-tracker probe poses: the parameter layout, the
+measurement model through `robtraj.model`, identifiability, weights and a
+Levenberg–Marquardt solver (see `robtraj.analysis.real_data` for the model)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from .._errors import UserError
+from ..model import (
+    Effects,
+    camera_from_base_at,
+    flange_poses,
+    forward_kinematics,
+    gravity_torque,
+    ur10,
+)
+
+if TYPE_CHECKING:
+    from ._pose_series import PoseSeries
+
+#: order of the parameter vector after the 12 rigid parameters
+_EFFECT_ORDER = (
+    "joint_offset",
+    "link_length",
+    "joint_compliance",
+    "thermal_drift",
+    "tracker_scale",
+)
+_TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
+#: relative singular value below which a direction is a null direction (exact degeneracy)
+_NULL_TOL = 1e-7
+#: which parameter of a null direction to fix first (the UR10's known degeneracies:
+#: joint-1 zero ≡ tracker yaw, d1 ≡ tracker z, joint-6 zero ≡ probe roll about the
+#: flange axis, d6/a6 ≡ probe offset, d2 + d3 + d4 along parallel axes 2–4 only as a
+#: sum, no gravity torque on joints 1 and 6), so that both series fix the same ones
+FIX_PREFERENCE = (
+    "joint_compliance[0]",
+    "joint_compliance[5]",
+    "joint_offset[0]",
+    "link_length[0].d",
+    "joint_offset[5]",
+    "link_length[5].d",
+    "link_length[5].a",
+    "link_length[1].d",
+    "link_length[2].d",
+)
+
+# ----------------------------------------------------------------------------- parameters
+
+
+def _effect_sizes(n_joints: int = 6) -> dict[str, int]:
+    return {
+        "joint_offset": n_joints,
+        "link_length": 2 * n_joints,
+        "joint_compliance": n_joints,
+        "thermal_drift": 3,
+        "tracker_scale": 1,
+    }
+
+
+def parameter_names(n_joints: int = 6) -> list[str]:
+    names = [f"camera_from_base.{t}" for t in _TANGENT]
+    names += [f"flange_from_probe.{t}" for t in _TANGENT]
+    names += [f"joint_offset[{j}]" for j in range(n_joints)]
+    names += [f"link_length[{j}].{c}" for j in range(n_joints) for c in ("d", "a")]
+    names += [f"joint_compliance[{j}]" for j in range(n_joints)]
+    names += [f"thermal_drift[{k}]" for k in range(3)]
+    names += ["tracker_scale"]
+    return names
+
+
+def _slices(n_joints: int = 6) -> dict[str, slice]:
+    out, k = {}, 12
+    for name, size in _effect_sizes(n_joints).items():
+        out[name] = slice(k, k + size)
+        k += size
+    return out
+
+
+N_PARAMS = len(parameter_names())
+_SL = _slices()
+
+
+def _effects_of(theta) -> Effects:
+    e = Effects.zeros(6)
+    return dataclasses.replace(
+        e,
+        joint_offset=theta[_SL["joint_offset"]],
+        link_length=theta[_SL["link_length"]].reshape(6, 2),
+        joint_compliance=theta[_SL["joint_compliance"]],
+        thermal_drift=theta[_SL["thermal_drift"]],
+        tracker_scale=theta[_SL["tracker_scale"]][0],
+    )
+
+
+def _flange(eff: Effects, joints, torque) -> jaxlie.SE3:
+    """base←flange: `robtraj.model.flange_poses` for static poses (no backlash), with the
+    gravity torques of the nominal link-mass model precomputed (they do not depend on
+    the parameters; `flange_poses` recomputes them inside every Jacobian column)."""
+    robot = ur10()
+    q = joints + eff.joint_offset + eff.joint_compliance * torque
+    dh_delta = jnp.zeros_like(robot.dh).at[:, :2].set(eff.link_length)
+    return jax.vmap(lambda qq: forward_kinematics(robot, qq, dh_delta))(q)
+
+
+def gravity_torques(joints: np.ndarray) -> np.ndarray:
+    """`(N, J)` gravity torques [N·m] of the nominal UR10 link-mass model."""
+    robot = ur10()
+    return np.asarray(jax.jit(jax.vmap(lambda q: gravity_torque(robot, q)))(jnp.asarray(joints)))
+
+
+def _predict(theta, z0, x0, joints, drift, torque):
+    """camera←probe predicted `(N, 7)` for the parameter vector `theta`."""
+    eff = _effects_of(theta)
+    z = jaxlie.SE3(z0) @ jaxlie.SE3.exp(theta[:6])
+    x = jaxlie.SE3(x0) @ jaxlie.SE3.exp(theta[6:12])
+    flange = _flange(eff, joints, torque)
+    cam = camera_from_base_at(z, eff, drift)
+    pose = cam @ flange @ x
+    pos = (1.0 + eff.tracker_scale) * pose.translation()
+    return jnp.concatenate([pose.rotation().wxyz, pos], -1)
+
+
+def _raw_residual(theta, z0, x0, joints, drift, torque, measured):
+    """`(N, 6)`: position error [m] and rotation vector [rad] of measured⁻¹·predicted."""
+    pred = _predict(theta, z0, x0, joints, drift, torque)
+    dp = pred[:, 4:] - measured[:, 4:]
+    dr = jax.vmap(lambda a, b: (jaxlie.SO3(a).inverse() @ jaxlie.SO3(b)).log())(
+        measured[:, :4], pred[:, :4]
+    )
+    return jnp.concatenate([dp, dr], -1)
+
+
+_predict_jit = jax.jit(lambda *a: _predict(*a))
+
+
+@jax.jit
+def _residual_jit(theta, z0, x0, joints, drift, torque, measured):
+    return _raw_residual(theta, z0, x0, joints, drift, torque, measured)
+
+
+@jax.jit
+def _jacobian_jit(theta, z0, x0, joints, drift, torque, measured):
+    r = _raw_residual(theta, z0, x0, joints, drift, torque, measured)
+    j = jax.jacfwd(_raw_residual)(theta, z0, x0, joints, drift, torque, measured)
+    return r, j
+
+
+# ----------------------------------------------------------------------------- errors
+
+
+@jax.jit
+def _relative_wxyz(a, b):
+    return jax.vmap(lambda x, y: (jaxlie.SO3(x).inverse() @ jaxlie.SO3(y)).wxyz)(a, b)
+
+
+def pose_errors(predicted: np.ndarray, measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position error [m] and single-angle orientation error [rad] per pose
+    (``2·atan2(|q_xyz|, |q_w|)`` of the relative rotation, DESIGN section 6)."""
+    pred, meas = np.asarray(predicted), np.asarray(measured)
+    pos = np.linalg.norm(pred[:, 4:] - meas[:, 4:], axis=-1)
+    rel = np.asarray(_relative_wxyz(jnp.asarray(meas[:, :4]), jnp.asarray(pred[:, :4])))
+    ang = 2.0 * np.arctan2(np.linalg.norm(rel[:, 1:], axis=-1), np.abs(rel[:, 0]))
+    return pos, ang
+
+
+def error_summary(pos: np.ndarray, ang: np.ndarray, noise_m: float = 0.0) -> dict[str, float]:
+    """mean / RMS / max position error [mm], orientation error [deg], and the gap [mm]
+    (position RMS with the tracker noise taken out, DESIGN section 7)."""
+    rms = float(np.sqrt(np.mean(pos**2)))
+    return {
+        "pos_mean_mm": float(np.mean(pos)) * 1e3,
+        "pos_rms_mm": rms * 1e3,
+        "pos_max_mm": float(np.max(pos)) * 1e3,
+        "ang_mean_deg": float(np.rad2deg(np.mean(ang))),
+        "ang_max_deg": float(np.rad2deg(np.max(ang))),
+        "gap_mm": math.sqrt(max(0.0, rms**2 - 3 * noise_m**2)) * 1e3,
+    }
+
+
+def tracker_noise(series: PoseSeries) -> float:
+    """Per-axis tracker noise σ [m] from its reported standard deviations (0 without)."""
+    if series.std is None:
+        return 0.0
+    return float(np.sqrt(np.mean(series.std[:, :3] ** 2)))
+
+
+# ----------------------------------------------------------------------------- fit
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseFit:
+    """A pose-level calibration of one series.
+
+    `theta`: full parameter vector (`parameter_names`), zero = the start; `z0`, `x0`:
+    camera←base and flange←probe at θ = 0 (``wxyz_xyz``); `free`: estimated parameters;
+    `fixed_unidentifiable`: effect parameters fixed because they are not identifiable
+    (with the direction they are confounded with); `sigma`: 1σ of the estimated
+    parameters (`np.nan` elsewhere), from ``s²(JᵀWJ)⁻¹`` with ``s²=χ²/(n−p)``.
+    """
+
+    series: str
+    estimated: tuple[str, ...]
+    theta: np.ndarray
+    z0: np.ndarray
+    x0: np.ndarray
+    free: np.ndarray
+    sigma: np.ndarray
+    chi2: float
+    n_residuals: int
+    block_sigma: tuple[float, float]
+    identifiability: dict[str, Any]
+    position_error: np.ndarray
+    angle_error: np.ndarray
+    iterations: int
+    converged: bool
+
+    @property
+    def n_free(self) -> int:
+        return int(self.free.sum())
+
+    @property
+    def camera_from_base(self) -> np.ndarray:
+        return np.asarray((jaxlie.SE3(self.z0) @ jaxlie.SE3.exp(self.theta[:6])).wxyz_xyz)
+
+    @property
+    def flange_from_probe(self) -> np.ndarray:
+        return np.asarray((jaxlie.SE3(self.x0) @ jaxlie.SE3.exp(self.theta[6:12])).wxyz_xyz)
+
+    def effect_values(self) -> dict[str, list]:
+        return {e: self.theta[_SL[parse_effect_spec(e)[0]]].tolist() for e in self.estimated}
+
+    def parameters(self) -> dict[str, tuple[float, float]]:
+        """Estimated effect parameters {name: (value, σ)} in SI units."""
+        names = parameter_names()
+        return {
+            names[i]: (float(self.theta[i]), float(self.sigma[i]))
+            for i in range(12, N_PARAMS)
+            if self.free[i]
+        }
+
+    def summary(self, noise_m: float = 0.0) -> dict[str, float]:
+        return error_summary(self.position_error, self.angle_error, noise_m)
+
+
+def _closed_form_start(series: PoseSeries) -> tuple[np.ndarray, np.ndarray]:
+    """Shah's robot-world/hand-eye solution on (at most 200) poses, nominal kinematics."""
+    from ..estimate.calibration import robot_world_hand_eye
+
+    robot = ur10()
+    sel = np.linspace(0, series.n - 1, min(series.n, 200)).astype(int)
+    q = jnp.asarray(series.joints[sel])
+    flange = jax.jit(flange_poses)(robot, Effects.zeros(6), q, jnp.zeros_like(q)).wxyz_xyz
+    z, x = robot_world_hand_eye(series.measured[sel], np.asarray(flange))
+    return np.asarray(z, float), np.asarray(x, float)
+
+
+def parse_effect_spec(spec: str) -> tuple[str, list[int] | None]:
+    """``"joint_compliance"`` → all its parameters; ``"joint_compliance[1,2]"`` → only
+    those elements (e.g. the joints that carry the arm's weight)."""
+    name, _, rest = spec.partition("[")
+    if name not in _SL:
+        raise UserError(
+            f"effect {name!r} is not fitted at pose level (choose from {_EFFECT_ORDER})"
+        )
+    if not rest:
+        return name, None
+    try:
+        idx = [int(v) for v in rest.rstrip("]").split(",")]
+    except ValueError:
+        raise UserError(f"bad effect {spec!r}: expected NAME[i,j,...]") from None
+    size = _SL[name].stop - _SL[name].start
+    if any(i < 0 or i >= size for i in idx):
+        raise UserError(f"bad effect {spec!r}: indices must lie in 0..{size - 1}")
+    return name, idx
+
+
+def _free_mask(estimate: Sequence[str], rigid: Sequence[str] = ("camera", "probe")) -> np.ndarray:
+    free = np.zeros(N_PARAMS, bool)
+    if "camera" in rigid:
+        free[:6] = True
+    if "probe" in rigid:
+        free[6:12] = True
+    for spec in estimate:
+        name, idx = parse_effect_spec(spec)
+        sl = _SL[name]
+        if idx is None:
+            free[sl] = True
+        else:
+            free[sl.start + np.asarray(idx)] = True
+    return free
+
+
+def identifiability(jac: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+    """Fix effect parameters along null directions of the column-scaled Jacobian.
+
+    Repeatedly: SVD of the free, unit-norm columns; for the smallest singular direction
+    below `_NULL_TOL`, fix the effect parameter (never a rigid one) with the largest
+    component and record what it is confounded with. Returns the reduced mask and a
+    report ``{"dropped": [{"parameter", "confounded_with"}], "condition": …}``.
+    """
+    names = parameter_names()
+    free = free.copy()
+    dropped = []
+    zero = [i for i in np.flatnonzero(free) if np.linalg.norm(jac[:, i]) == 0.0]
+    for i in zero:
+        if i >= 12:
+            free[i] = False
+            dropped.append({"parameter": names[i], "confounded_with": ["(no effect on the data)"]})
+    # A = Q·R: the singular values of any column subset of A are those of R's columns
+    norms = np.linalg.norm(jac, axis=0)
+    r_all = np.linalg.qr(jac / np.where(norms > 0, norms, 1.0), mode="r")
+    while True:
+        idx = np.flatnonzero(free)
+        _, s, vt = np.linalg.svd(r_all[:, idx], full_matrices=False)
+        rel = s / s[0]
+        if rel[-1] >= _NULL_TOL:
+            break
+        v = vt[-1]
+        cand = [(abs(v[k]), k) for k in range(idx.size) if idx[k] >= 12]
+        if not cand:
+            raise UserError("the rigid transforms alone are not identifiable from these poses")
+        big = max(c for c, _ in cand)
+        known = [
+            (FIX_PREFERENCE.index(names[idx[k]]), k)
+            for c, k in cand
+            if c >= 0.2 * big and names[idx[k]] in FIX_PREFERENCE
+        ]
+        k = min(known)[1] if known else max(cand)[1]
+        partners = [names[idx[m]] for m in np.argsort(-np.abs(v)) if m != k and abs(v[m]) > 0.05]
+        free[idx[k]] = False
+        dropped.append({"parameter": names[idx[k]], "confounded_with": partners})
+    idx = np.flatnonzero(free)
+    s = np.linalg.svd(r_all[:, idx], compute_uv=False)
+    # order-independent explanation: each fixed parameter's column as a combination of
+    # the free ones (unit-norm columns; coefficients above 0.05 are named, largest first)
+    for d in dropped:
+        i = names.index(d["parameter"])
+        if norms[i] == 0.0:
+            continue
+        coef = np.linalg.lstsq(r_all[:, idx], r_all[:, i], rcond=None)[0]
+        order = np.argsort(-np.abs(coef))
+        d["confounded_with"] = [names[idx[m]] for m in order if abs(coef[m]) > 0.05]
+    return free, {"dropped": dropped, "condition": float(s[0] / s[-1])}
+
+
+def _weights(series: PoseSeries, block_sigma: tuple[float, float]) -> np.ndarray:
+    """`(N, 6)` weights 1/variance (see the module docstring)."""
+    sp, sr = block_sigma
+    var = np.empty((series.n, 6))
+    var[:, :3] = sp**2
+    var[:, 3:] = sr**2
+    if series.std is not None:
+        std = np.nan_to_num(np.asarray(series.std, float))
+        var[:, :3] += np.mean(std[:, :3] ** 2, 1, keepdims=True)
+        var[:, 3:] += np.mean(std[:, 3:] ** 2, 1, keepdims=True)
+    return 1.0 / var
+
+
+def _block_sigma(r: np.ndarray, series: PoseSeries) -> tuple[float, float]:
+    """Unexplained σ per block (position [m], rotation [rad]) beyond the tracker's std."""
+    out = []
+    for blk in (slice(0, 3), slice(3, 6)):
+        v = float(np.mean(r[:, blk] ** 2))
+        if series.std is not None:
+            v -= float(np.mean(np.nan_to_num(series.std[:, blk]) ** 2))
+        out.append(math.sqrt(max(v, 1e-16)))
+    return out[0], out[1]
+
+
+@jax.jit
+def _effect_part(theta, joints, drift, torque):
+    """What the effects contribute, for the rigid-only fast path: base←flange
+    (``wxyz_xyz``), the thermal shift of camera←base `(N, 3)` and the scale."""
+    eff = _effects_of(theta)
+    flange = _flange(eff, joints, torque).wxyz_xyz
+    return flange, drift[:, None] * eff.thermal_drift[None, :], eff.tracker_scale
+
+
+def _rigid_residual(t12, z0, x0, flange, shift, scale, measured):
+    z = jaxlie.SE3(z0) @ jaxlie.SE3.exp(t12[:6])
+    x = jaxlie.SE3(x0) @ jaxlie.SE3.exp(t12[6:])
+    pose = jax.vmap(lambda f: z @ jaxlie.SE3(f) @ x)(flange)
+    pos = (1.0 + scale) * (pose.translation() + shift)
+    dp = pos - measured[:, 4:]
+    dr = jax.vmap(lambda a, b: (jaxlie.SO3(a).inverse() @ jaxlie.SO3(b)).log())(
+        measured[:, :4], pose.rotation().wxyz
+    )
+    return jnp.concatenate([dp, dr], -1)
+
+
+_rigid_residual_jit = jax.jit(_rigid_residual)
+
+
+@jax.jit
+def _rigid_jacobian_jit(t12, z0, x0, flange, shift, scale, measured):
+    r = _rigid_residual(t12, z0, x0, flange, shift, scale, measured)
+    return r, jax.jacfwd(_rigid_residual)(t12, z0, x0, flange, shift, scale, measured)
+
+
+class _Problem:
+    """Residual and Jacobian columns of one series; the rigid-only case (nominal model,
+    cross-series refits) differentiates only the 12 rigid parameters."""
+
+    def __init__(self, args, free):
+        self.args = args
+        self.idx = np.flatnonzero(free)
+        self.rigid_only = bool(np.all(self.idx < 12))
+        self._part = None
+
+    def _effects(self, theta):
+        if self._part is None:
+            z0, x0, joints, drift, torque, _ = self.args
+            self._part = _effect_part(jnp.asarray(theta), joints, drift, torque)
+        return self._part
+
+    def residual(self, theta) -> np.ndarray:
+        if self.rigid_only:
+            z0, x0, *_, measured = self.args
+            return np.asarray(
+                _rigid_residual_jit(
+                    jnp.asarray(theta[:12]), z0, x0, *self._effects(theta), measured
+                )
+            )
+        return np.asarray(_residual_jit(jnp.asarray(theta), *self.args))
+
+    def jacobian(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        """Residual `(N, 6)` and Jacobian `(6N, len(idx))` of the free columns."""
+        if self.rigid_only:
+            z0, x0, *_, measured = self.args
+            r, j = _rigid_jacobian_jit(
+                jnp.asarray(theta[:12]), z0, x0, *self._effects(theta), measured
+            )
+            return np.asarray(r), np.asarray(j).reshape(-1, 12)[:, self.idx]
+        r, j = _jacobian_jit(jnp.asarray(theta), *self.args)
+        return np.asarray(r), np.asarray(j).reshape(-1, N_PARAMS)[:, self.idx]
+
+
+def _lm(theta, free, args, w, max_iter=50):
+    """Levenberg–Marquardt on the weighted residuals over the `free` parameters.
+
+    Returns ``(theta, residual (N, 6), Jacobian of the free columns, cost, iterations,
+    converged)``."""
+    prob = _Problem(args, free)
+    sw = np.sqrt(w).reshape(-1)
+    idx = prob.idx
+    lam = 1e-3
+    r, j = prob.jacobian(theta)
+    cost = float(np.sum((r.reshape(-1) * sw) ** 2))
+    it, converged = 0, False
+    for it in range(1, max_iter + 1):
+        a = j * sw[:, None]
+        b = r.reshape(-1) * sw
+        h = a.T @ a
+        g = a.T @ b
+        d = np.diag(h).copy()
+        improved = False
+        for _ in range(12):
+            step = np.linalg.solve(h + lam * np.diag(np.maximum(d, 1e-30)), -g)
+            trial = theta.copy()
+            trial[idx] += step
+            rt = prob.residual(trial)
+            ct = float(np.sum((rt.reshape(-1) * sw) ** 2))
+            if ct < cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            converged = True
+            break
+        rel = (cost - ct) / max(cost, 1e-300)
+        theta, cost = trial, ct
+        lam = max(lam / 10.0, 1e-12)
+        r, j = prob.jacobian(theta)
+        if rel < 1e-10:
+            converged = True
+            break
+    return theta, r, j, cost, it, converged
+
+
+def fit_poses(
+    series: PoseSeries,
+    *,
+    estimate: Sequence[str] = (),
+    init: PoseFit | None = None,
+    fixed: PoseFit | None = None,
+    rigid: Sequence[str] = ("camera", "probe"),
+    block_sigma: tuple[float, float] | None = None,
+    max_iter: int = 50,
+) -> PoseFit:
+    """Calibrate `series` at pose level (see the module docstring).
+
+    - `estimate`: effects to fit besides the rigid transforms (`_EFFECT_ORDER`).
+    - `init`: start from this fit of the same series (its θ and start transforms).
+    - `fixed`: a fit of *another* series whose effects are frozen here (cross-series
+      prediction); only the rigid transforms named in `rigid` are refitted.
+    - `rigid`: which rigid transforms are free: ``"camera"`` (camera←base) and/or
+      ``"probe"`` (flange←probe).
+    - `block_sigma`: unexplained σ (position [m], rotation [rad]) used for the
+      weights; default: estimated from a nominal rigid fit of this series.
+    """
+    if init is not None:
+        theta, z0, x0 = init.theta.copy(), init.z0, init.x0
+    else:
+        z0, x0 = series.start
+        theta = np.zeros(N_PARAMS)
+    if fixed is not None:
+        theta[12:] = fixed.theta[12:]
+        if "probe" not in rigid:
+            # same probe mounting: carry the source's flange←probe over
+            x0 = fixed.flange_from_probe
+            theta[6:12] = 0.0
+    args = tuple(
+        jnp.asarray(a)
+        for a in (z0, x0, series.joints, series.drift_variable, series.torque, series.measured)
+    )
+    free = _free_mask(estimate, rigid)
+    if block_sigma is None:
+        # block weights from the residuals of a first, rigid-only pass
+        t0, r0, *_ = _lm(theta.copy(), _free_mask((), rigid), args, _weights(series, (1e-3, 1e-3)))
+        block_sigma = _block_sigma(r0, series)
+        theta = t0
+    w = _weights(series, block_sigma)
+    if np.any(free[12:]):
+        _, j0 = _Problem(args, np.ones(N_PARAMS, bool)).jacobian(theta)
+        free, ident = identifiability(j0 * np.sqrt(w).reshape(-1)[:, None], free)
+        theta = np.where(free | (np.arange(N_PARAMS) < 12), theta, 0.0)
+    else:
+        ident = {"dropped": [], "condition": float("nan")}
+    if fixed is not None:
+        theta[12:] = fixed.theta[12:]
+    theta, r, j, cost, iters, conv = _lm(theta, free, args, w, max_iter)
+    n_res = int(r.size)
+    idx = np.flatnonzero(free)
+    a = j * np.sqrt(w).reshape(-1)[:, None]
+    s2 = cost / max(1, n_res - idx.size)
+    sigma = np.full(N_PARAMS, np.nan)
+    sigma[idx] = np.sqrt(np.diag(np.linalg.pinv(a.T @ a)) * s2)
+    pred = np.asarray(_predict_jit(jnp.asarray(theta), *args[:5]))
+    pos, ang = pose_errors(pred, series.measured)
+    return PoseFit(
+        series=series.name,
+        estimated=tuple(estimate) if fixed is None else fixed.estimated,
+        theta=theta,
+        z0=np.asarray(z0),
+        x0=np.asarray(x0),
+        free=free,
+        sigma=sigma,
+        chi2=cost,
+        n_residuals=n_res,
+        block_sigma=tuple(float(b) for b in block_sigma),
+        identifiability=ident,
+        position_error=pos,
+        angle_error=ang,
+        iterations=iters,
+        converged=conv,
+    )
+
+
+def cross_predict(
+    source: PoseFit, target: PoseSeries, rigid: Sequence[str] = ("camera", "probe")
+) -> PoseFit:
+    """Predict `target` with `source`'s effects frozen; refit only the `rigid` transforms."""
+    return fit_poses(target, fixed=source, rigid=rigid)
