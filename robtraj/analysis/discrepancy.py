@@ -207,7 +207,9 @@ def _frame_variables(rec: Recording, angles: np.ndarray) -> dict[str, np.ndarray
         for j in range(q.shape[1]):
             out[f"joint {j + 1}"] = np.broadcast_to(q[:, j, None], (n, m))
         qd = np.gradient(q, rec.time, axis=0)
+        qdd = np.gradient(qd, rec.time, axis=0)
         out["joint speed"] = np.broadcast_to(np.linalg.norm(qd, axis=1)[:, None], (n, m))
+        out["joint acceleration"] = np.broadcast_to(np.linalg.norm(qdd, axis=1)[:, None], (n, m))
     if rec.program is not None and rec.program.segment is not None:
         out["program segment"] = np.broadcast_to(rec.program.segment[:, None], (n, m))
     out["LED"] = np.broadcast_to(np.arange(m)[None, :], (n, m))

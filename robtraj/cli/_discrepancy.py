@@ -12,11 +12,12 @@ def register(sub) -> argparse.ArgumentParser:
         "discrepancy",
         help="find where model and measurement disagree and name the missing effect",
         description=(
-            "Fit the nominal model, localise the disagreement, refit with each effect of the "
+            "Fit the nominal model, localise the disagreement, score each effect of the "
             "library (time_offset, joint_offset, link_length, joint_compliance, backlash, "
-            "led_angle_bias, tracker_scale, thermal_drift), name the significant ones by a "
-            "likelihood-ratio test and BIC with the noise measured at the static dwells, and "
-            "report structure that no library effect explains."
+            "led_angle_bias, tracker_scale, thermal_drift) by a score test, refit with the "
+            "best and name it when the likelihood-ratio test and BIC confirm it, with the "
+            "noise measured at the static dwells; repeat; report structure that no library "
+            "effect explains."
         ),
     )
     p.add_argument(
@@ -26,15 +27,25 @@ def register(sub) -> argparse.ArgumentParser:
     p.add_argument(
         "--report", metavar="DIR", help="write figures: the gap step by step, residual structure"
     )
+    p.add_argument(
+        "--force", action="store_true", help="overwrite OUT and the figures in DIR if they exist"
+    )
     p.set_defaults(func=run)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
+    from .._errors import UserError
     from .._progress import progress_bar
     from ..analysis.discrepancy import discover
     from ..recording import read_recording
 
+    targets = [Path(args.json)] if args.json else []
+    if args.report:
+        targets += [Path(args.report) / f"discrepancy_{k}.png" for k in ("gap", "structure")]
+    for t in targets:
+        if t.exists() and not args.force:
+            raise UserError(f"{t} exists; choose another name or pass --force")
     rec = read_recording(args.recording)
     with progress_bar("discrepancy", 1) as _:
         res = discover(rec)
@@ -56,6 +67,11 @@ def run(args: argparse.Namespace) -> int:
     )
     if doc["unexplained"]:
         print(f"unexplained structure remains, against: {', '.join(doc['unexplained_where'])}")
+        if doc["steps"]:
+            print(
+                "the named effects may partly stand in for it: an effect outside the library "
+                "is absorbed by library effects as far as the data cannot tell them apart"
+            )
     else:
         print("no structured residual left beyond the noise")
     if args.json:

@@ -1,10 +1,14 @@
 """Discrepancy discovery when the library has nothing to name: no hidden effect (false
 positives over 20 seeds) and an effect outside the library (reported as unexplained)."""
 
+import json
+
 import numpy as np
 from test_discrepancy import _hidden
 
+from robtraj import write_recording
 from robtraj.analysis.discrepancy import discover
+from robtraj.cli import main
 
 
 def test_nothing_hidden_nothing_named_over_20_seeds():
@@ -13,12 +17,37 @@ def test_nothing_hidden_nothing_named_over_20_seeds():
     assert false_positive <= 0.05, named
 
 
-def test_an_effect_outside_the_library_is_reported_as_unexplained_with_its_joint():
-    rec, _ = _hidden({}, seed=3)
+def _periodic_encoder_error(seed=3):
+    rec, _ = _hidden({}, seed=seed)
     q = rec.robot.joints.copy()
     # the encoder of joint 2 has a periodic error: the logged angle is off by A·sin(4·q2)
     q[:, 1] -= 4e-4 * np.sin(4 * q[:, 1])
-    rec = rec.replace(robot=rec.robot.__class__(rec.robot.time, q, rec.robot.model, rec.robot.dh))
-    res = discover(rec)
+    return rec.replace(robot=rec.robot.__class__(rec.robot.time, q, rec.robot.model, rec.robot.dh))
+
+
+def test_an_effect_outside_the_library_is_reported_as_unexplained_with_its_joint():
+    res = discover(_periodic_encoder_error())
     assert res.unexplained
     assert "joint 2" in res.unexplained_where[:3], res.unexplained_where
+
+
+def test_cli_writes_the_design_json_and_the_report_and_refuses_to_overwrite(tmp_path, capsys):
+    path = tmp_path / "rec.h5"
+    write_recording(_periodic_encoder_error(), path)
+    out, report = tmp_path / "disc.json", tmp_path / "report"
+    assert main(["discrepancy", str(path), "--json", str(out), "--report", str(report)]) == 0
+    doc = json.loads(out.read_text())
+    assert {"gap_before_m", "steps", "gap_after_m", "unexplained"} <= set(doc)
+    assert doc["unexplained"] and doc["gap_after_m"] < doc["gap_before_m"]
+    for step in doc["steps"]:
+        assert {"effect", "parameters", "gap_after_m", "score"} <= set(step)
+    assert (report / "discrepancy_gap.png").stat().st_size > 10_000
+    assert (report / "discrepancy_structure.png").stat().st_size > 10_000
+    text = capsys.readouterr().out
+    assert "unexplained structure remains, against: joint 2" in text
+    assert "stand in for it" in text
+    # no overwriting, one-line errors with exit code 2
+    assert main(["discrepancy", str(path), "--json", str(out)]) == 2
+    assert main(["discrepancy", str(tmp_path / "missing.h5")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(e.startswith("robtraj: error:") for e in err), err
