@@ -1,7 +1,8 @@
 """Discrepancy discovery (DESIGN section 7): what is the nominal model missing?
 
 Fit the nominal model (bundle calibration); compare prediction and measurement; localise
-the disagreement (time, program segment, joint angles, speed, LED, emission angle); score
+the disagreement (time, program segment, joint angles, speed and acceleration, LED,
+emission angle); score
 every candidate effect of the library at once with Rao's score test (the Gauss–Newton
 predicted χ² decrease of adding it, χ²(k) under the null) and BIC, with the noise level
 estimated from the data's static segments (not from the fit's own residual, which
@@ -36,7 +37,8 @@ ALPHA_STRUCTURE = 0.001
 @dataclasses.dataclass(frozen=True)
 class Step:
     """One named effect: fitted `parameters` {name: (value, σ)} (SI units), the gap after
-    adding it [m], and its `score` (likelihood ratio, dof, p-value, ΔBIC)."""
+    adding it [m], and its `score` (likelihood ratio of the refit, dof, p-value, ΔBIC);
+    `candidates`: the score tests of every candidate of the round."""
 
     effect: str
     parameters: dict[str, tuple[float, float]]
