@@ -2,14 +2,13 @@
 
 Fit the nominal model (bundle calibration); compare prediction and measurement; localise
 the disagreement (time, program segment, joint angles, speed and acceleration, LED,
-emission angle); score
-every candidate effect of the library at once with Rao's score test (the Gauss–Newton
-predicted χ² decrease of adding it, χ²(k) under the null) and BIC, with the noise level
-estimated from the data's static segments (not from the fit's own residual, which
-contains what is missing); refit with the best significant one and name it when the
-refit's likelihood-ratio test confirms it; repeat until nothing significant remains;
-finally test whether structured residual is left and, if so, report where it lives —
-never forcing a library name on it.
+emission angle); score every candidate effect of the library at once with Rao's score
+test (the Gauss–Newton predicted χ² decrease of adding it, χ²(k) under the null) and
+BIC, with the noise level estimated from the data's static segments (not from the fit's
+own residual, which contains what is missing); refit with the best significant one and
+name it when the refit's likelihood-ratio test confirms it; repeat until nothing
+significant remains; finally test whether structured residual is left and, if so,
+report where it lives — never forcing a library name on it.
 
 The **gap** is the RMS of the systematic disagreement with the noise taken out:
 ``sqrt(max(0, mean|r|² − mean 3σ̂²))`` over all LED observations [m].
