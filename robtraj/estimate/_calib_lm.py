@@ -158,7 +158,8 @@ def levenberg_marquardt(
         hs = normal.H[np.ix_(idx, idx)] / np.outer(d, d)
         bs = normal.b[idx] / d
         z = _solve(hs, bs, mu)
-        predicted = float(z @ bs - 0.5 * z @ hs @ z)
+        # cost = Σ w r², linearised: c − 2 bᵀδ + δᵀHδ
+        predicted = float(2.0 * z @ bs - z @ hs @ z)
         if predicted <= tol * max(normal.cost, 1e-300):
             converged = True
             break
