@@ -23,6 +23,7 @@ from ..model import (
     gravity_torque,
     ur10,
 )
+from ._quat import rotation_angle
 
 if TYPE_CHECKING:
     from ._pose_series import PoseSeries
@@ -158,19 +159,12 @@ def _jacobian_jit(theta, z0, x0, joints, drift, torque, measured):
 # ----------------------------------------------------------------------------- errors
 
 
-@jax.jit
-def _relative_wxyz(a, b):
-    return jax.vmap(lambda x, y: (jaxlie.SO3(x).inverse() @ jaxlie.SO3(y)).wxyz)(a, b)
-
-
 def pose_errors(predicted: np.ndarray, measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Position error [m] and single-angle orientation error [rad] per pose
     (``2·atan2(|q_xyz|, |q_w|)`` of the relative rotation, DESIGN section 6)."""
     pred, meas = np.asarray(predicted), np.asarray(measured)
     pos = np.linalg.norm(pred[:, 4:] - meas[:, 4:], axis=-1)
-    rel = np.asarray(_relative_wxyz(jnp.asarray(meas[:, :4]), jnp.asarray(pred[:, :4])))
-    ang = 2.0 * np.arctan2(np.linalg.norm(rel[:, 1:], axis=-1), np.abs(rel[:, 0]))
-    return pos, ang
+    return pos, rotation_angle(meas[:, :4], pred[:, :4])
 
 
 def error_summary(pos: np.ndarray, ang: np.ndarray, noise_m: float = 0.0) -> dict[str, float]:
