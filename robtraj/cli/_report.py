@@ -24,31 +24,73 @@ def register(sub) -> argparse.ArgumentParser:
     return p
 
 
+def _inputs(args: argparse.Namespace, notes: list[str]):
+    """(recording, calibration or None, base-frame poses or None): what can be had from
+    this recording; what cannot goes to `notes`."""
+    from ..estimate._base_frame import base_frame_poses, load_calibration
+    from ..recording import read_recording
+
+    rec = read_recording(args.recording)
+    calib = None
+    if args.calibration:
+        calib = load_calibration(args.calibration)
+    elif rec.robot is None or rec.tool is None:
+        missing = " and ".join(
+            w for w, x in [("robot log", rec.robot), ("tool constellation", rec.tool)] if x is None
+        )
+        notes.append(f"no calibration: the recording has no {missing} (give --calibration)")
+    else:
+        from ..estimate.calibration import fit
+
+        try:
+            calib = fit(rec)
+        except UserError as e:
+            notes.append(f"no calibration: self-calibration of the recording failed: {e}")
+    bf = None
+    if calib is not None:
+        bf = base_frame_poses(rec, calib, weighting=args.weighting)
+    if rec.program is None:
+        notes.append("no program (/program): ISO 9283 and path deviation are left out")
+    return rec, calib, bf
+
+
 def run(args: argparse.Namespace) -> int:
     from ..analysis import write_tum
     from ..report._recording_report import recording_report
     from ._deviation import deviation_of
     from ._iso9283 import iso_of
 
-    rec, calib, bf = _analysis_inputs.load(args)
+    notes: list[str] = []
+    rec, calib, bf = _inputs(args, notes)
     out = Path(args.out)
     ref = dev = iso = None
-    notes = []
-    try:
-        ref, dev = deviation_of(rec, bf)
-    except UserError as e:
-        notes.append(f"path deviation skipped: {e}")
-    try:
-        iso = iso_of(rec, bf)
-    except UserError as e:
-        notes.append(f"ISO 9283 skipped: {e}")
+    if rec.program is not None and bf is not None:
+        try:
+            ref, dev = deviation_of(rec, bf)
+            dev.summary()  # raises when no frame lies on a linear move
+        except UserError as e:
+            ref = dev = None
+            notes.append(f"path deviation left out: {e}")
+        try:
+            iso = iso_of(rec, bf)
+        except UserError as e:
+            notes.append(f"ISO 9283 left out: {e}")
     path = recording_report(
-        out, rec, calib, bf, deviation=dev, reference=ref, iso=iso, name=Path(args.recording).name
+        out,
+        rec,
+        calib,
+        bf,
+        deviation=dev,
+        reference=ref,
+        iso=iso,
+        name=Path(args.recording).name,
+        notes=notes,
     )
-    v = bf.valid
-    write_tum(out / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
-    if dev is not None:
-        write_tum(out / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
+    if bf is not None:
+        v = bf.valid
+        write_tum(out / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
+        if dev is not None:
+            write_tum(out / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
     _analysis_inputs.write_json(
         args.json,
         {

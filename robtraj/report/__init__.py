@@ -4,13 +4,18 @@ from ._figures import (
     deviation_figure as deviation_figure,
     path_3d_figure as path_3d_figure,
     pose_quality_figure as pose_quality_figure,
+    robust_limit as robust_limit,
     velocity_figure as velocity_figure,
     visibility_figure as visibility_figure,
     weighting_figure as weighting_figure,
 )
 from ._html import (
+    Figure as Figure,
     Section as Section,
+    Summary as Summary,
     Table as Table,
+    Value as Value,
+    interval_of as interval_of,
     iso_tables as iso_tables,
     write_report as write_report,
 )

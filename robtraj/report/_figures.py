@@ -31,20 +31,32 @@ def path_3d_figure(
     title: str = "Measured TCP path, coloured by deviation from the commanded path",
 ) -> Path:
     """3D measured path `(N, 3)` [m] coloured by its deviation `(N,)` [m] (shown in mm),
-    with the commanded path `reference` `(R, 3)` [m] as a thin line."""
-    fig = plt.figure(figsize=(8, 7), constrained_layout=True)
-    ax = fig.add_subplot(projection="3d")
-    if reference is not None:
-        ax.plot(*(np.asarray(reference) * 1e3).T, color="0.6", lw=0.8, label="commanded")
+    with the commanded path `reference` `(R, 3)` [m] drawn over it (red, dashed), and a
+    top view (x–y) beside it where the two are easier to tell apart."""
+    fig = plt.figure(figsize=(12, 5.6), layout="constrained")
+    fig.get_layout_engine().set(wspace=0.12)
+    ax = fig.add_subplot(1, 2, 1, projection="3d", computed_zorder=False)
+    top = fig.add_subplot(1, 2, 2)
     ok = np.all(np.isfinite(position), axis=1) & np.isfinite(distance)
-    sc = ax.scatter(*(position[ok] * 1e3).T, c=distance[ok] * 1e3, s=2, cmap="viridis")
-    fig.colorbar(sc, ax=ax, shrink=0.7, label="deviation [mm]")
+    p, d = position[ok] * 1e3, distance[ok] * 1e3
+    sc = ax.scatter(*p.T, c=d, s=2, cmap="viridis", zorder=1, label="measured")
+    top.scatter(p[:, 0], p[:, 1], c=d, s=2, cmap="viridis", zorder=1, label="measured")
+    if reference is not None:
+        r = np.asarray(reference) * 1e3
+        style = dict(color="C3", lw=1.4, ls="--", zorder=10, label="commanded")
+        ax.plot(*r.T, **style)
+        top.plot(r[:, 0], r[:, 1], **style)
+        top.legend(loc="best", markerscale=4)
+    fig.colorbar(sc, ax=[ax, top], shrink=0.8, label="deviation [mm]")
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
     ax.set_zlabel("z [mm]")
-    ax.set_title(title)
-    if reference is not None:
-        ax.legend(loc="upper left")
+    top.set_xlabel("x [mm]")
+    top.set_ylabel("y [mm]")
+    top.set_aspect("equal", adjustable="datalim")
+    top.grid(True, alpha=0.3)
+    top.set_title("top view")
+    fig.suptitle(title)
     return _save(fig, path)
 
 
@@ -109,7 +121,8 @@ def visibility_figure(
     title: str = "LEDs seen by the camera (black) over time",
 ) -> Path:
     """Paper Fig. 3: visibility image `(N, M)` (LED vs time) and, if given, the LED variance
-    `(N, M)` [m²] of the three LEDs whose visibility changes most, as a std in µm."""
+    `(N, M)` [m²] of the three LEDs whose visibility changes most, as a std in µm, on an
+    axis clipped by `robust_limit` (values above it drawn at the limit and marked)."""
     t = time - time[0]
     m = visible.shape[1]
     ids = np.arange(m) if led_ids is None else np.asarray(led_ids)
@@ -126,15 +139,39 @@ def visibility_figure(
     if variance is not None:
         a1 = axes[1, 0]
         changes = np.abs(np.diff(np.asarray(visible, int), axis=0)).sum(0)
-        for k in np.argsort(-(changes + 1e-3 * visible.sum(0)))[:3]:
-            with np.errstate(invalid="ignore"):
-                a1.semilogy(t, np.sqrt(variance[:, k]) * 1e6, lw=0.8, label=f"LED {ids[k]}")
+        pick = np.argsort(-(changes + 1e-3 * visible.sum(0)))[:3]
+        with np.errstate(invalid="ignore"):
+            std = np.sqrt(np.asarray(variance)[:, pick]) * 1e6
+        top, n_clipped = robust_limit(std)
+        for j, k in enumerate(pick):
+            a1.plot(t, np.minimum(std[:, j], top), lw=0.8, label=f"LED {ids[k]}")
+        if n_clipped:
+            above = std > top
+            a1.plot(t[above.any(1)], np.full(above.any(1).sum(), top), "v", color="C3",
+                    ms=4, label=f"clipped: {n_clipped} samples, max {np.nanmax(std) / 1e3:.3g} mm")  # fmt: skip
+        if np.isfinite(top):
+            a1.set_ylim(0, top * 1.05)
         a1.set_ylabel("LED variance, as std [µm]")
-        a1.set_title("LED variance")
-        a1.legend()
-        a1.grid(True, which="both", alpha=0.3)
+        a1.set_title("LED variance (axis clipped at median + 10 robust σ; spikes marked ▼)")
+        a1.legend(fontsize=8, loc="upper right")
+        a1.grid(True, alpha=0.3)
     axes[-1, 0].set_xlabel("time [s]")
     return _save(fig, path)
+
+
+def robust_limit(values: np.ndarray, k: float = 10.0) -> tuple[float, int]:
+    """Axis limit median + `k`·σ̂ of the finite `values`, σ̂ = 1.4826·MAD (the normal
+    standard deviation for Gaussian data), so that spikes do not set the scale; and how
+    many values lie above it. Falls back to the largest value when the MAD is zero."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return float("nan"), 0
+    med = float(np.median(v))
+    top = med + k * 1.4826 * float(np.median(np.abs(v - med)))
+    if top <= 0 or top <= med:
+        top = float(v.max()) or 1.0
+    return top, int(np.sum(v > top))
 
 
 def pose_quality_figure(
