@@ -17,10 +17,10 @@ from ._words import GLOSSARY, column_label
 
 @dataclasses.dataclass(frozen=True)
 class Value:
-    """A number with an optional interval `(lo, hi)` (e.g. a 95 % confidence interval),
-    rendered as ``value [lo, hi]``; `None` or NaN as "–"."""
+    """A value (a number, or text) with an optional interval `(lo, hi)` (e.g. a 95 %
+    confidence interval), rendered as ``value [lo, hi]``; `None` or NaN as "–"."""
 
-    value: float | None
+    value: Any
     interval: tuple[float, float] | None = None
 
 

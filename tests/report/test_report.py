@@ -4,18 +4,24 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from robtraj.report import (
     Section,
     Table,
+    Value,
     deviation_figure,
+    interval_of,
     iso_tables,
     path_3d_figure,
     pose_quality_figure,
+    robust_limit,
     velocity_figure,
     visibility_figure,
     write_report,
 )
+from robtraj.report._html import _cell
+from robtraj.report._words import column_label
 
 
 def test_figures_and_html(tmp_path):
@@ -55,5 +61,55 @@ def test_figures_and_html(tmp_path):
     for src in re.findall(r'<img src="([^"]+)"', text):  # every image exists next to the page
         assert (out / src).is_file()
     assert len(re.findall(r"<img ", text)) == 5
-    assert "<th>AP_mm</th>" in text and "<td>0.12</td>" in text and "commanded_mm" not in text
+    # transposed: one row per characteristic, in words with the unit; lists left out
+    assert "<td>position accuracy AP [mm]</td><td>0.12</td>" in text
+    assert "commanded_mm" not in text and "AP_mm" not in text
+    assert "<dt>AP</dt>" in text and "<dt>RP</dt>" in text  # glossary of the symbols used
     assert Path(out / "path_3d.png").is_file()  # figures outside out_dir are copied in
+
+
+def test_intervals_render_in_both_shapes():
+    """A characteristic's 95 % interval as a sibling ``KEY_ci95`` or in a ``ci95`` block."""
+    iso = {
+        "poses": {
+            "P1": {"n_cycles": 30, "AP_mm": 0.5, "AP_mm_ci95": [0.4, 0.6], "RP_mm": 0.1},
+            "P2": {"n_cycles": 30, "AP_mm": 0.7, "RP_mm": 0.2, "ci95": {"RP_mm": [0.15, 0.3]}},
+        }
+    }
+    (table,) = iso_tables(iso)
+    assert table.columns == ["characteristic", "P1", "P2"]
+    rows = {r[0]: r[1:] for r in table.rows}
+    assert set(rows) == {"cycles n", "position accuracy AP [mm]", "position repeatability RP [mm]"}
+    ap, rp = rows["position accuracy AP [mm]"], rows["position repeatability RP [mm]"]
+    assert ap[0] == Value(0.5, (0.4, 0.6)) and ap[1] == Value(0.7, None)
+    assert rp[0] == Value(0.1, None) and rp[1] == Value(0.2, (0.15, 0.3))
+    assert interval_of({"x": 1.0, "x_ci95": [float("nan"), 2.0]}, "x") is None
+    assert _cell(Value(0.5, (0.4, 0.6))) == '0.5 <span class="ci">[0.4, 0.6]</span>'
+    assert _cell(Value(None, (0.4, 0.6))) == "–" and _cell(float("nan")) == "–"
+
+
+def test_wide_blocks_are_split_into_tables_of_six_columns():
+    iso = {"paths": {f"T{i}->T{i + 1}": {"AT_mm": 0.1 * i} for i in range(14)}}
+    tables = iso_tables(iso)
+    assert [len(t.columns) - 1 for t in tables] == [6, 6, 2]
+    assert [c for t in tables for c in t.columns[1:]] == list(iso["paths"])
+
+
+def test_column_labels_carry_words_and_units():
+    assert column_label("t_stab_mean_s") == "stabilisation time t_stab, mean [s]"
+    assert column_label("FV_mm_per_s") == "velocity fluctuation FV [mm/s]"
+    assert column_label("AV_percent") == "velocity accuracy AV [%]"
+    assert column_label("RPb_deg") == "orientation repeatability RP, b (about y) [°]"
+    assert column_label("new_thing_mm") == "new_thing [mm]"  # unknown: key and unit
+
+
+def test_robust_limit_is_median_plus_ten_mad_sigmas():
+    rng = np.random.default_rng(1)
+    v = np.abs(rng.normal(100.0, 10.0, 5000))
+    v[::100] = 2e4  # 1 % spikes, far above the normal level
+    top, n = robust_limit(np.concatenate([v, [np.nan]]))
+    med = np.median(v)
+    want = med + 10 * 1.4826 * np.median(np.abs(v - med))
+    assert top == pytest.approx(want) and n == 50
+    # the scale follows the bulk: within 10 % of the Gaussian σ of the clean part (σ = 10)
+    assert top == pytest.approx(100.0 + 10 * 10.0, rel=0.1)
