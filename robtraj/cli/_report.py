@@ -50,7 +50,12 @@ def _inputs(args: argparse.Namespace, notes: list[str]):
     if calib is not None:
         bf = base_frame_poses(rec, calib, weighting=args.weighting)
     if rec.program is None:
-        notes.append("no program (/program): ISO 9283 and path deviation are left out")
+        notes.append("ISO 9283 and path deviation left out: no program (/program)")
+    elif bf is None:
+        notes.append(
+            "ISO 9283 and path deviation left out: no calibration, so no poses in the robot "
+            "base frame"
+        )
     return rec, calib, bf
 
 

@@ -63,11 +63,21 @@ def _pose_rows(label: str, pose, sigma: Mapping[str, float], prefix: str) -> lis
     rv = np.degrees(Rotation.from_quat(pose.quaternion_wxyz, scalar_first=True).as_rotvec())
     s_t = [sigma.get(f"{prefix}.t{a}", np.nan) * 1e3 for a in "xyz"]
     s_r = [np.degrees(sigma.get(f"{prefix}.r{a}", np.nan)) for a in "xyz"]
-    fmt = lambda v, d: ", ".join(f"{x:.{d}f}" for x in v)  # noqa: E731
     return [
-        [f"{label} position x, y, z", fmt(pos, 3), fmt(s_t, 4), "mm"],
-        [f"{label} rotation vector x, y, z", fmt(rv, 4), fmt(s_r, 5), "°"],
+        [f"{label} position x, y, z", _join(pos, 3), _join(s_t, 4), "mm"],
+        [f"{label} rotation vector x, y, z", _join(rv, 4), _join(s_r, 5), "°"],
     ]
+
+
+def _join(values, decimals: int) -> str:
+    """``"a, b, c"`` with fixed decimals; "–" when none is finite."""
+    v = np.asarray(values, float)
+    return ", ".join(f"{x:.{decimals}f}" for x in v) if np.isfinite(v).any() else "–"
+
+
+def _micro(x: float, decimals: int = 2, unit: str = "") -> str:
+    """Metres as µm text (with `unit` appended), "not given" for NaN."""
+    return f"{x * 1e6:.{decimals}f}{unit}" if np.isfinite(x) else "not given"
 
 
 def calibration_tables(c) -> list[Table]:
@@ -75,17 +85,22 @@ def calibration_tables(c) -> list[Table]:
     sigma = c.sigma if np.size(c.covariance) else {}
     dropped = [d["parameter"] for d in c.identifiability.get("dropped", [])]
     tau = (
-        f"{c.time_offset * 1e3:.4f} (σ {sigma.get('time_offset', np.nan) * 1e3:.2g})"
+        f"{c.time_offset * 1e3:.4f} (σ {sigma.get('time_offset', np.nan) * 1e3:.2g} ms)"
         if "time_offset" in c.estimated
         else "not estimated"
     )
     rows = [
         *_pose_rows("camera←base", c.camera_from_base, sigma, "camera_from_base"),
         *_pose_rows("flange←tool", c.flange_from_tool, sigma, "flange_from_tool"),
-        ["residual RMS of the LED positions", f"{c.residual_rms_m * 1e6:.2f}", "", "µm"],
-        ["noise σ per axis", f"{c.noise_sigma_m * 1e6:.2f}", "", "µm"],
+        ["residual RMS of the LED positions", _micro(c.residual_rms_m), "", "µm"],
+        ["noise σ per axis", _micro(c.noise_sigma_m), "", "µm"],
         ["clock offset τ", tau, "", "ms"],
-        ["converged", f"{c.converged} after {c.iterations} iterations", "", ""],
+        [
+            "converged",
+            f"{c.converged} after {c.iterations} iterations" if c.iterations else "not given",
+            "",
+            "",
+        ],
         ["parameters fixed (not identifiable)", ", ".join(dropped) or "none", "", ""],
         ["LEDs never seen", ", ".join(map(str, c.unseen_leds)) or "none", "", ""],
         ["gauge", c.gauge, "", ""],
@@ -97,8 +112,9 @@ def calibration_tables(c) -> list[Table]:
             rows,
             "Bundle calibration (robtraj calibrate): camera←base and flange←tool as position "
             "and rotation vector; σ from the calibration's covariance (right perturbation, "
-            "tool/base axes). Fixed parameters could not be told apart from others and are "
-            "held at zero.",
+            "tool/base axes)"
+            + ("" if sigma else "; the calibration has no covariance, so no σ")
+            + ". Fixed parameters could not be told apart from others and are held at zero.",
         )
     ]
     effects = [e for e in c.estimated if e != "time_offset"]
@@ -282,14 +298,14 @@ def recording_report(
         facts.append(
             (
                 "calibration",
-                f"residual RMS {c.residual_rms_m * 1e6:.1f} µm (noise σ "
-                f"{c.noise_sigma_m * 1e6:.1f} µm per axis); effects: "
+                f"residual RMS {_micro(c.residual_rms_m, 1, ' µm')} (noise σ per axis "
+                f"{_micro(c.noise_sigma_m, 1, ' µm')}); effects: "
                 + (", ".join(c.estimated) or "none")
                 + "; fixed (not identifiable): "
                 + (", ".join(dropped) or "none"),
             )
         )
-        if not c.converged:
+        if c.iterations and not c.converged:
             warnings.append("the calibration did not converge")
         if dropped:
             warnings.append(
