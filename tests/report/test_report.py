@@ -21,6 +21,7 @@ from robtraj.report import (
     write_report,
 )
 from robtraj.report._html import _cell
+from robtraj.report._recording_report import calibration_tables
 from robtraj.report._words import column_label
 
 
@@ -113,3 +114,47 @@ def test_robust_limit_is_median_plus_ten_mad_sigmas():
     assert top == pytest.approx(want) and n == 50
     # the scale follows the bulk: within 10 % of the Gaussian σ of the clean part (σ = 10)
     assert top == pytest.approx(100.0 + 10 * 10.0, rel=0.1)
+
+
+def _calibration(estimated, effects, names, sigma, dropped=()):
+    from robtraj.estimate._calib_result import CalibrationResult
+    from robtraj.recording import Pose
+
+    pose = Pose(np.array([0.1, 0.2, 0.3]), np.array([1.0, 0.0, 0.0, 0.0]))
+    return CalibrationResult(
+        camera_from_base=pose, flange_from_tool=pose, led_ids=np.arange(3),
+        constellation=np.zeros((3, 3)), effects=effects, estimated=tuple(estimated),
+        parameter_names=tuple(names), covariance=np.diag(np.square(sigma)),
+        residual_rms_m=5e-5, noise_sigma_m=3e-5, gauge="reference_constellation",
+        gauge_reference=np.zeros((3, 3)),
+        identifiability={"dropped": [{"parameter": p} for p in dropped]},
+        iterations=4, converged=True,
+    )  # fmt: skip
+
+
+def test_calibration_tables_show_effects_with_sigma_and_units():
+    names = ["time_offset", "joint_compliance[0]", "joint_compliance[1]", "link_length[0].d",
+             "link_length[0].a"]  # fmt: skip
+    c = _calibration(
+        ["time_offset", "joint_compliance", "link_length"],
+        {"time_offset": 2e-3, "joint_compliance": [0.0, 1.5e-6], "link_length": [[1e-5, -2e-5]]},
+        names,
+        [1e-5, 0.0, 2e-8, 4e-6, 5e-6],
+        dropped=["joint_compliance[0]"],
+    )
+    cal, eff = calibration_tables(c)
+    rows = {r[0]: r[1:] for r in cal.rows}
+    assert rows["clock offset τ"][0] == "2.0000 (σ 0.01 ms)"
+    assert rows["parameters fixed (not identifiable)"][0] == "joint_compliance[0]"
+    assert rows["residual RMS of the LED positions"][0] == "50.00"
+    got = {r[0]: r[1:] for r in eff.rows}
+    assert list(got) == names[1:]  # τ is in the calibration table, not an effect row
+    assert got["joint_compliance[0]"][0] == "fixed (not identifiable)"
+    # display units: µrad/(N·m) and µm, value / σ
+    assert got["joint_compliance[1]"][:3] == pytest.approx([1.5, 0.02, 75.0], rel=1e-12)
+    assert got["joint_compliance[1]"][3] == "µrad/(N·m)"
+    assert got["link_length[0].a"][:3] == pytest.approx([-20.0, 5.0, 4.0], rel=1e-12)
+    assert got["link_length[0].a"][3] == "µm"
+    none = _calibration([], {}, [], [])
+    (cal,) = calibration_tables(none)
+    assert {r[0]: r[1] for r in cal.rows}["clock offset τ"] == "not estimated"
