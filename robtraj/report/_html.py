@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from ._words import GLOSSARY, column_label
+from ._words import CAPTIONS, GLOSSARY, column_label
 
 
 @dataclasses.dataclass(frozen=True)
@@ -204,7 +204,7 @@ def _figure_html(fig: Figure | str | os.PathLike, out: Path) -> str:
         shutil.copy2(path, out / path.name)
         rel = Path(path.name)
     src = html.escape(rel.as_posix())
-    caption = caption or path.stem.replace("_", " ")
+    caption = caption or CAPTIONS.get(path.stem) or path.stem.replace("_", " ")
     return (
         f'<figure><a href="{src}"><img src="{src}" alt="{html.escape(caption)}"></a>'
         f"<figcaption>{html.escape(caption)}</figcaption></figure>"

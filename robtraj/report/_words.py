@@ -66,6 +66,20 @@ _LABELS = {
 }
 
 
+# captions of figures written under fixed names by other parts of the package (the demo,
+# the discrepancy workflow) and passed to the report as plain paths
+CAPTIONS = {
+    "discrepancy_gap": "Gap between model and measurement (systematic RMS) after each named "
+    "effect is added, against the per-axis noise and the gap a complete model leaves by "
+    "chance.",
+    "discrepancy_structure": "Residual RMS against time, joint angle and LED emission angle, "
+    "with the nominal model and with the named effects: structure that remains is what the "
+    "model still misses.",
+    "weighting": "Error of the tool position against the simulation's truth per LED weighting "
+    "scheme (25-frame moving mean), per axis; shaded: an LED at the edge of visibility.",
+}
+
+
 def column_label(key: str) -> str:
     """Words and unit for a JSON key such as ``"t_stab_mean_s"`` → ``"stabilisation time
     t_stab, mean [s]"``; an unknown key is shown as it is, its unit suffix in brackets."""
