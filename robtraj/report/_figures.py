@@ -39,15 +39,18 @@ def path_3d_figure(
     top = fig.add_subplot(1, 2, 2)
     ok = np.all(np.isfinite(position), axis=1) & np.isfinite(distance)
     p, d = position[ok] * 1e3, distance[ok] * 1e3
-    sc = ax.scatter(*p.T, c=d, s=2, cmap="viridis", zorder=1, label="measured")
-    top.scatter(p[:, 0], p[:, 1], c=d, s=2, cmap="viridis", zorder=1, label="measured")
+    vmax, n_above = robust_limit(d)
+    kw = dict(c=d, s=2, cmap="viridis", vmin=0.0, vmax=vmax, zorder=1, label="measured")
+    sc = ax.scatter(*p.T, **kw)
+    top.scatter(p[:, 0], p[:, 1], **kw)
     if reference is not None:
         r = np.asarray(reference) * 1e3
         style = dict(color="C3", lw=1.4, ls="--", zorder=10, label="commanded")
         ax.plot(*r.T, **style)
         top.plot(r[:, 0], r[:, 1], **style)
         top.legend(loc="best", markerscale=4)
-    fig.colorbar(sc, ax=[ax, top], shrink=0.8, label="deviation [mm]")
+    fig.colorbar(sc, ax=[ax, top], shrink=0.8, extend="max" if n_above else "neither",
+                 label="deviation [mm]" + (f" ({n_above} frames above the scale)" if n_above else ""))  # fmt: skip
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
     ax.set_zlabel("z [mm]")
@@ -172,6 +175,36 @@ def robust_limit(values: np.ndarray, k: float = 10.0) -> tuple[float, int]:
     if top <= 0 or top <= med:
         top = float(v.max()) or 1.0
     return top, int(np.sum(v > top))
+
+
+def static_pose_figure(
+    path: str | os.PathLike,
+    position_error: np.ndarray,
+    angle_error: np.ndarray,
+    *,
+    title: str = "Error of each static pose against its command",
+) -> Path:
+    """Position error `(N,)` [m → mm] and orientation error `(N,)` [rad → °] per pose
+    number, with their histograms."""
+    fig, axes = plt.subplots(2, 2, figsize=(10, 5.5), width_ratios=(3, 1), sharey="row",
+                             layout="constrained")  # fmt: skip
+    n = np.arange(1, position_error.shape[0] + 1)
+    for row, (v, label) in enumerate(
+        [
+            (position_error * 1e3, "position error [mm]"),
+            (np.degrees(angle_error), "orientation error [°]"),
+        ]
+    ):
+        ok = np.isfinite(v)
+        axes[row, 0].plot(n[ok], v[ok], ".", ms=2)
+        axes[row, 0].set_ylabel(label)
+        axes[row, 1].hist(v[ok], bins=40, orientation="horizontal", color="C1")
+        for a in axes[row]:
+            a.grid(True, alpha=0.3)
+    axes[1, 0].set_xlabel("pose number")
+    axes[1, 1].set_xlabel("poses")
+    axes[0, 0].set_title(title)
+    return _save(fig, path)
 
 
 def pose_quality_figure(

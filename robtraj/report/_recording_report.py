@@ -14,6 +14,7 @@ from ._figures import (
     deviation_figure,
     path_3d_figure,
     pose_quality_figure,
+    static_pose_figure,
     velocity_figure,
     visibility_figure,
 )
@@ -207,6 +208,37 @@ def _key_facts(iso_json: Mapping[str, Any]) -> tuple[list[tuple[str, Any]], list
     return facts, warnings
 
 
+def static_pose_errors(rec, calibration, base_poses) -> tuple[np.ndarray, np.ndarray] | None:
+    """Position error [m] and single rotation angle [rad] per frame of a static pose
+    series (one joint-move target per frame, no segment map, no nominal TCP: an imported
+    6-DOF pose series): the measured flange, base←tool · (flange←tool)⁻¹ through the
+    calibration, against the commanded flange pose. None for any other recording."""
+    from scipy.spatial.transform import Rotation
+
+    from ..analysis import absolute_pose_error
+
+    prog = rec.program
+    if (
+        prog is None
+        or calibration is None
+        or base_poses is None
+        or prog.segment is not None
+        or np.shape(prog.targets.position)[0] != rec.n_frames
+        or np.any(np.asarray(prog.motion).astype(str) == "linear")
+        or (rec.tool is not None and rec.tool.flange_from_tool is not None)
+    ):
+        return None
+    ft = calibration.flange_from_tool
+    r_ft = Rotation.from_quat(ft.quaternion_wxyz, scalar_first=True)
+    ok = base_poses.valid
+    r_bt = Rotation.from_quat(np.where(ok[:, None], base_poses.quaternion_wxyz, [1, 0, 0, 0]),
+                              scalar_first=True)  # fmt: skip
+    p_bf = base_poses.position - r_bt.apply(r_ft.inv().apply(ft.position))
+    q_bf = (r_bt * r_ft.inv()).as_quat(scalar_first=True)
+    p_bf[~ok], q_bf[~ok] = np.nan, np.nan
+    return absolute_pose_error(p_bf, q_bf, prog.targets.position, prog.targets.quaternion_wxyz)
+
+
 def _left_out(title: str, reason: str) -> Section:
     return Section(title, f"Left out: {reason}")
 
@@ -321,6 +353,53 @@ def recording_report(
     else:
         sections.append(
             _left_out("Calibration", "no calibration (needs a robot log, or --calibration).")
+        )
+
+    static = static_pose_errors(rec, c, base_poses)
+    if static is not None:
+        e, a = static
+        ok = np.isfinite(e)
+        e, a = e[ok], a[ok]
+        rms = lambda x: float(np.sqrt(np.mean(x**2)))  # noqa: E731
+        facts.append(
+            (
+                "static pose error",
+                f"position RMS {rms(e) * 1e3:.3f} mm, max {e.max() * 1e3:.3f} mm; orientation "
+                f"RMS {np.degrees(rms(a)):.4f}° over {e.size} poses",
+            )
+        )
+        rows = [
+            ["poses", e.size, "–"],
+            ["position error, mean", e.mean() * 1e3, "mm"],
+            ["position error, RMS", rms(e) * 1e3, "mm"],
+            ["position error, max", e.max() * 1e3, "mm"],
+            ["orientation error, mean", np.degrees(a.mean()), "°"],
+            ["orientation error, RMS", np.degrees(rms(a)), "°"],
+            ["orientation error, max", np.degrees(a.max()), "°"],
+        ]
+        sections.append(
+            Section(
+                "Static pose accuracy",
+                "Measured flange pose (the measured tool pose through the calibration's "
+                "camera←base and flange←tool) against the commanded flange pose, pose by "
+                "pose. The calibration fits the rigid transforms to these same poses, so "
+                "this is the robot's error beyond them; ISO 9283 AP/RP need repeated cycles.",
+                figures=[
+                    Figure(
+                        static_pose_figure(out / "static_poses.png", *static),
+                        "Position and orientation error of each static pose, and their "
+                        "distribution.",
+                    )
+                ],
+                tables=[
+                    Table(
+                        "Static pose errors",
+                        ["quantity", "value", "unit"],
+                        rows,
+                        "Over the poses where the tool was seen.",
+                    )
+                ],
+            )
         )
 
     if iso is not None:

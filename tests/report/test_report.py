@@ -21,7 +21,7 @@ from robtraj.report import (
     write_report,
 )
 from robtraj.report._html import _cell
-from robtraj.report._recording_report import calibration_tables
+from robtraj.report._recording_report import calibration_tables, static_pose_errors
 from robtraj.report._words import column_label
 
 
@@ -158,3 +158,42 @@ def test_calibration_tables_show_effects_with_sigma_and_units():
     none = _calibration([], {}, [], [])
     (cal,) = calibration_tables(none)
     assert {r[0]: r[1] for r in cal.rows}["clock offset τ"] == "not estimated"
+
+
+def test_static_pose_errors_against_a_direct_composition():
+    """Measured tool poses built as commanded flange · flange←tool, then disturbed by
+    known flange errors: the errors come back (scipy composition as the reference)."""
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation as R
+
+    from robtraj.recording import Pose
+
+    rng = np.random.default_rng(3)
+    n = 8
+    r_flange = R.random(n, random_state=4)
+    p_flange = rng.normal(0, 0.5, (n, 3))
+    ft = Pose(
+        np.array([0.01, -0.02, 0.1]), R.from_rotvec([0.1, 0.2, -0.3]).as_quat(scalar_first=True)
+    )
+    r_ft = R.from_quat(ft.quaternion_wxyz, scalar_first=True)
+    d_pos = rng.normal(0, 1e-3, (n, 3))  # flange position error [m]
+    d_rot = R.from_rotvec(rng.normal(0, 1e-3, (n, 3)))  # flange orientation error
+    r_meas_f = d_rot * r_flange
+    p_meas_f = p_flange + d_pos
+    bf = SimpleNamespace(
+        position=p_meas_f + r_meas_f.apply(ft.position),
+        quaternion_wxyz=(r_meas_f * r_ft).as_quat(scalar_first=True),
+        valid=np.r_[np.ones(n - 1, bool), False],
+    )
+    prog = SimpleNamespace(
+        targets=Pose(p_flange, r_flange.as_quat(scalar_first=True)),
+        motion=np.array(["joint"] * n, dtype="<U8"), segment=None,
+    )  # fmt: skip
+    rec = SimpleNamespace(program=prog, n_frames=n, tool=SimpleNamespace(flange_from_tool=None))
+    e, a = static_pose_errors(rec, SimpleNamespace(flange_from_tool=ft), bf)
+    np.testing.assert_allclose(e[:-1], np.linalg.norm(d_pos, axis=1)[:-1], rtol=1e-9)
+    np.testing.assert_allclose(a[:-1], d_rot.magnitude()[:-1], rtol=1e-6)
+    assert np.isnan(e[-1]) and np.isnan(a[-1])
+    prog.motion[2] = "linear"  # a path program is not a static pose series
+    assert static_pose_errors(rec, SimpleNamespace(flange_from_tool=ft), bf) is None
