@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from .._errors import UserError
 from ._figures import (
     deviation_figure,
     path_3d_figure,
@@ -276,9 +277,14 @@ def recording_report(
         est, t, position = base_poses.poses, base_poses.time, base_poses.position
         frame = "robot base frame"
     elif rec.tool is not None:
-        est = estimate_poses(rec)
-        t, position = est.time, est.position
-        frame = "camera (tracker) frame, no calibration to the robot base"
+        try:
+            est = estimate_poses(rec)
+            t, position = est.time, est.position
+            frame = "camera (tracker) frame, no calibration to the robot base"
+        except UserError as e:
+            est = t = position = None
+            frame = "none: the tool poses could not be fitted"
+            warnings.append(f"tool poses left out: {e}")
     else:
         est = t = position = None
         frame = "none: the recording has no tool constellation"
