@@ -211,24 +211,36 @@ def _key_facts(iso_json: Mapping[str, Any]) -> tuple[list[tuple[str, Any]], list
 
 def static_pose_errors(rec, calibration, base_poses) -> tuple[np.ndarray, np.ndarray] | None:
     """Position error [m] and single rotation angle [rad] per frame of a static pose
-    series (one joint-move target per frame, no segment map, no nominal TCP: an imported
-    6-DOF pose series): the measured flange, base←tool · (flange←tool)⁻¹ through the
-    calibration, against the commanded flange pose. None for any other recording."""
+    series (one robot log sample per tracker frame at the same time, no linear move, no
+    segment map: an imported 6-DOF pose series): the measured flange, base←tool ·
+    (flange←tool)⁻¹ through the calibration, against the flange pose the robot model
+    (with the calibration's effects) gives for the logged joints. None for any other
+    recording."""
+    import jax.numpy as jnp
     from scipy.spatial.transform import Rotation
 
     from ..analysis import absolute_pose_error
+    from ..model import flange_poses, robot_from_log
 
-    prog = rec.program
+    prog, log = rec.program, rec.robot
     if (
-        prog is None
-        or calibration is None
+        calibration is None
         or base_poses is None
-        or prog.segment is not None
-        or np.shape(prog.targets.position)[0] != rec.n_frames
-        or np.any(np.asarray(prog.motion).astype(str) == "linear")
-        or (rec.tool is not None and rec.tool.flange_from_tool is not None)
+        or log is None
+        or (prog is not None and prog.segment is not None)
+        or (prog is not None and np.any(np.asarray(prog.motion).astype(str) == "linear"))
+        or np.shape(log.joints)[0] != rec.n_frames
+        or not np.allclose(log.time, rec.time)
     ):
         return None
+    q = jnp.asarray(log.joints, jnp.float64)
+    cmd = flange_poses(
+        robot_from_log(log.model, log.dh),
+        calibration.effects_module(q.shape[1]),
+        q,
+        jnp.zeros_like(q),
+    ).wxyz_xyz
+    cmd = np.asarray(cmd)
     ft = calibration.flange_from_tool
     r_ft = Rotation.from_quat(ft.quaternion_wxyz, scalar_first=True)
     ok = base_poses.valid
@@ -237,7 +249,7 @@ def static_pose_errors(rec, calibration, base_poses) -> tuple[np.ndarray, np.nda
     p_bf = base_poses.position - r_bt.apply(r_ft.inv().apply(ft.position))
     q_bf = (r_bt * r_ft.inv()).as_quat(scalar_first=True)
     p_bf[~ok], q_bf[~ok] = np.nan, np.nan
-    return absolute_pose_error(p_bf, q_bf, prog.targets.position, prog.targets.quaternion_wxyz)
+    return absolute_pose_error(p_bf, q_bf, cmd[:, 4:], cmd[:, :4])
 
 
 def _left_out(title: str, reason: str) -> Section:
@@ -387,14 +399,16 @@ def recording_report(
             Section(
                 "Static pose accuracy",
                 "Measured flange pose (the measured tool pose through the calibration's "
-                "camera←base and flange←tool) against the commanded flange pose, pose by "
-                "pose. The calibration fits the rigid transforms to these same poses, so "
-                "this is the robot's error beyond them; ISO 9283 AP/RP need repeated cycles.",
+                "camera←base and flange←tool) against the flange pose of the robot model "
+                "for the logged joint angles (nominal kinematics plus the calibrated "
+                "effects), pose by pose. The calibration fits the rigid transforms to these "
+                "same poses, so this is what the model leaves unexplained; ISO 9283 AP/RP "
+                "need repeated cycles.",
                 figures=[
                     Figure(
                         static_pose_figure(out / "static_poses.png", *static),
-                        "Position and orientation error of each static pose, and their "
-                        "distribution.",
+                        "Position and orientation error of each static pose against the "
+                        "robot model, and their distribution.",
                     )
                 ],
                 tables=[

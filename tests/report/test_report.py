@@ -161,18 +161,22 @@ def test_calibration_tables_show_effects_with_sigma_and_units():
 
 
 def test_static_pose_errors_against_a_direct_composition():
-    """Measured tool poses built as commanded flange · flange←tool, then disturbed by
-    known flange errors: the errors come back (scipy composition as the reference)."""
+    """Measured tool poses built as (model flange of the logged joints) · flange←tool, then
+    disturbed by known flange errors: the errors come back (scipy composition and the
+    model's one-pose forward kinematics as the reference)."""
     from types import SimpleNamespace
 
+    import jax.numpy as jnp
     from scipy.spatial.transform import Rotation as R
 
-    from robtraj.recording import Pose
+    from robtraj.model import Effects, forward_kinematics, ur10
+    from robtraj.recording import Pose, RobotLog
 
     rng = np.random.default_rng(3)
     n = 8
-    r_flange = R.random(n, random_state=4)
-    p_flange = rng.normal(0, 0.5, (n, 3))
+    joints = rng.uniform(-2.0, 2.0, (n, 6))
+    fk = np.array([np.asarray(forward_kinematics(ur10(), jnp.asarray(q)).wxyz_xyz) for q in joints])
+    r_flange, p_flange = R.from_quat(fk[:, :4], scalar_first=True), fk[:, 4:]
     ft = Pose(
         np.array([0.01, -0.02, 0.1]), R.from_rotvec([0.1, 0.2, -0.3]).as_quat(scalar_first=True)
     )
@@ -180,20 +184,19 @@ def test_static_pose_errors_against_a_direct_composition():
     d_pos = rng.normal(0, 1e-3, (n, 3))  # flange position error [m]
     d_rot = R.from_rotvec(rng.normal(0, 1e-3, (n, 3)))  # flange orientation error
     r_meas_f = d_rot * r_flange
-    p_meas_f = p_flange + d_pos
     bf = SimpleNamespace(
-        position=p_meas_f + r_meas_f.apply(ft.position),
+        position=p_flange + d_pos + r_meas_f.apply(ft.position),
         quaternion_wxyz=(r_meas_f * r_ft).as_quat(scalar_first=True),
         valid=np.r_[np.ones(n - 1, bool), False],
     )
-    prog = SimpleNamespace(
-        targets=Pose(p_flange, r_flange.as_quat(scalar_first=True)),
-        motion=np.array(["joint"] * n, dtype="<U8"), segment=None,
-    )  # fmt: skip
-    rec = SimpleNamespace(program=prog, n_frames=n, tool=SimpleNamespace(flange_from_tool=None))
-    e, a = static_pose_errors(rec, SimpleNamespace(flange_from_tool=ft), bf)
+    t = np.arange(n, dtype=float)
+    prog = SimpleNamespace(motion=np.array(["joint"] * n, dtype="<U8"), segment=None)
+    rec = SimpleNamespace(program=prog, n_frames=n, time=t,
+                          robot=RobotLog(t, joints, model="ur10"))  # fmt: skip
+    calib = SimpleNamespace(flange_from_tool=ft, effects_module=Effects.zeros)
+    e, a = static_pose_errors(rec, calib, bf)
     np.testing.assert_allclose(e[:-1], np.linalg.norm(d_pos, axis=1)[:-1], rtol=1e-9)
     np.testing.assert_allclose(a[:-1], d_rot.magnitude()[:-1], rtol=1e-6)
     assert np.isnan(e[-1]) and np.isnan(a[-1])
     prog.motion[2] = "linear"  # a path program is not a static pose series
-    assert static_pose_errors(rec, SimpleNamespace(flange_from_tool=ft), bf) is None
+    assert static_pose_errors(rec, calib, bf) is None
