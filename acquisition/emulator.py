@@ -194,7 +194,6 @@ class SocketTransport:
         conn.setblocking(True)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._conn = conn
-        time.sleep(0.1)  # pyserial purges its input right after connecting: start after that
         return True
 
     def send(self, data: bytes | bytearray) -> bool:
@@ -271,7 +270,6 @@ class PtyTransport:
             if time.monotonic() > end:
                 return False
             time.sleep(0.01)
-        time.sleep(0.1)  # let the opener finish configuring (pyserial flushes input on open)
         return True
 
     def send(self, data: bytes | bytearray) -> bool:

@@ -287,7 +287,12 @@ class Port:
 
         self.url = url
         try:
-            self.ser = serial.serial_for_url(url, baudrate=baudrate, timeout=0.05)
+            self.ser = serial.serial_for_url(url, baudrate=baudrate, timeout=0.05, do_not_open=True)
+            # pyserial purges the input on open: that would discard the first frames a device
+            # streams as soon as it is connected
+            self.ser.reset_input_buffer = lambda: None
+            self.ser._reset_input_buffer = lambda: None
+            self.ser.open()
         except (serial.SerialException, OSError, ValueError) as e:
             raise ConnectionLost(str(e)) from None
         sock = getattr(self.ser, "_socket", None)
