@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from .._errors import UserError
-from . import _analysis_inputs
+from . import _analysis_inputs, _output
 
 
 def register(sub) -> argparse.ArgumentParser:
@@ -28,27 +28,35 @@ def run(args: argparse.Namespace) -> int:
     from ..analysis import write_tum
     from ..report._recording_report import recording_report
     from ._deviation import deviation_of
-    from ._iso9283 import iso_of
+    from ._iso9283 import iso_of, missing_characteristics
 
-    rec, calib, bf = _analysis_inputs.load(args)
     out = Path(args.out)
+    _output.check([args.json], [out], force=args.force)
+    rec, calib, bf = _analysis_inputs.load(args, need_program=False)
     ref = dev = iso = None
     notes = []
-    try:
-        ref, dev = deviation_of(rec, bf)
-    except UserError as e:
-        notes.append(f"path deviation skipped: {e}")
-    try:
-        iso = iso_of(rec, bf)
-    except UserError as e:
-        notes.append(f"ISO 9283 skipped: {e}")
-    path = recording_report(
-        out, rec, calib, bf, deviation=dev, reference=ref, iso=iso, name=Path(args.recording).name
-    )
-    v = bf.valid
-    write_tum(out / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
-    if dev is not None:
-        write_tum(out / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
+    if rec.program is None:
+        notes.append("no /program in the recording: ISO 9283 and path deviation left out")
+    else:
+        try:
+            ref, dev = deviation_of(rec, bf)
+        except UserError as e:
+            notes.append(f"path deviation skipped: {e}")
+        try:
+            iso = iso_of(rec, bf)
+            notes += [f"ISO 9283: {m}" for m in missing_characteristics(iso)]
+        except UserError as e:
+            notes.append(f"ISO 9283 skipped: {e}")
+    with _output.new_folder(out) as tmp:
+        path = recording_report(
+            tmp, rec, calib, bf, deviation=dev, reference=ref, iso=iso,
+            name=Path(args.recording).name,
+        )  # fmt: skip
+        v = bf.valid
+        write_tum(tmp / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
+        if dev is not None:
+            write_tum(tmp / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
+    path = out / path.relative_to(tmp)
     _analysis_inputs.write_json(
         args.json,
         {
