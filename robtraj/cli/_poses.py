@@ -83,10 +83,10 @@ def run(args: argparse.Namespace) -> int:
     from ..recording import read_recording
 
     out = Path(args.out)
+    rec = read_recording(args.recording)
     _output.check([out, args.json], force=args.force)
     if args.window is not None and args.window < 2:
         raise UserError(f"--window must be at least 2 frames, got {args.window}")
-    rec = read_recording(args.recording)
     est = estimate_poses(
         rec, weighting=args.weighting, window=args.window, register=not args.nominal
     )
