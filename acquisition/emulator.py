@@ -113,6 +113,8 @@ class DeviceStream:
         if rec.n_frames == 0:
             raise UserError("the recording has no tracker frames to replay")
         ids = np.asarray(rec.led_ids)
+        if not np.issubdtype(ids.dtype, np.integer):
+            raise UserError(f"/tracker/led_ids must be integers, not {ids.dtype}")
         if ids.size > protocol.MAX_LEDS or np.any((ids < 0) | (ids > 255)):
             raise UserError(
                 "the robtraj protocol carries at most 255 LEDs with ids 0..255; "

@@ -253,10 +253,12 @@ def test_malformed_recording_is_one_line_exit_2_for_every_command(
         ["report", rec, "--calibration", calib, "--out", o / "r"],
         ["discrepancy", rec, "--json", o / "x.json"],
         ["emulate", rec, "--port", "socket://127.0.0.1:0", "--client-timeout", "0.01"],
+        ["import", rec, "--format", "n3d", "-o", o / "n.h5"],
+        ["import", rec, "--format", "natnet", "-o", o / "t.h5"],
     ]
     o.mkdir()
     for cmd in commands:
         code, out, err = run_cli(capsys, *cmd)
-        assert_one_line_error(code, err, str(rec))
+        assert_one_line_error(code, err)
         assert (digest(rec), digest(calib)) == before, (kind, detail, cmd[0])
         assert not any(o.iterdir()), cmd[0]
