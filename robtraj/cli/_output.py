@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 from collections.abc import Iterable, Iterator
@@ -136,6 +137,6 @@ def _finite(x: Any) -> Any:
         return [_finite(v) for v in x]
     if hasattr(x, "tolist") and not isinstance(x, (str, bytes)):
         return _finite(x.tolist())
-    if isinstance(x, float) and x != x or x in (float("inf"), float("-inf")):
+    if isinstance(x, float) and not math.isfinite(x):
         return None
     return x
