@@ -113,6 +113,8 @@ class DeviceStream:
         if rec.n_frames == 0:
             raise UserError("the recording has no tracker frames to replay")
         ids = np.asarray(rec.led_ids)
+        if not np.issubdtype(ids.dtype, np.integer):
+            raise UserError(f"/tracker/led_ids must be integers, not {ids.dtype}")
         if ids.size > protocol.MAX_LEDS or np.any((ids < 0) | (ids > 255)):
             raise UserError(
                 "the robtraj protocol carries at most 255 LEDs with ids 0..255; "
@@ -194,7 +196,6 @@ class SocketTransport:
         conn.setblocking(True)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._conn = conn
-        time.sleep(0.1)  # pyserial purges its input right after connecting: start after that
         return True
 
     def send(self, data: bytes | bytearray) -> bool:
@@ -271,7 +272,6 @@ class PtyTransport:
             if time.monotonic() > end:
                 return False
             time.sleep(0.01)
-        time.sleep(0.1)  # let the opener finish configuring (pyserial flushes input on open)
         return True
 
     def send(self, data: bytes | bytearray) -> bool:

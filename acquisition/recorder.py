@@ -29,9 +29,11 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import queue
 import re
 import select
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -105,9 +107,15 @@ class FrameWriter:
         led_set_seconds: float = 0.5,
         appender_factory: Callable[..., Any] = RecordingAppender,
         compression: str | None = "gzip",
+        threaded: bool = True,
     ) -> None:
         self.path = Path(path)
         self.compression = compression
+        self.threaded = threaded
+        # batches handed to the writer thread; at most 8 waiting bounds the memory held
+        self._queue: queue.Queue[list | None] = queue.Queue(maxsize=8)
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
         self.overwrite = overwrite
         self.attrs = attrs or {}
         self.led_set_seconds = led_set_seconds
@@ -225,10 +233,44 @@ class FrameWriter:
         return t, index, pos, status, temp
 
     def write(self) -> None:
-        """Append what is pending and flush (a no-op until the LED set is known)."""
+        """Append what is pending and flush (a no-op until the LED set is known).
+
+        `threaded`: packing, compression and the flush run in a writer thread, so that
+        reading the port never waits for them; an error of that thread (`DiskFull`) is
+        raised by the next call. Otherwise they run here."""
+        self._raise_error()
         if self.appender is None or not self._pending:
             return
         items, self._pending = self._pending, []
+        if not self.threaded:
+            self._write_items(items)
+            return
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._writer_loop, name="writer", daemon=True)
+            self._thread.start()
+        self._queue.put(items)
+
+    def _raise_error(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def _writer_loop(self) -> None:
+        while (items := self._queue.get()) is not None:
+            if self._error is not None:
+                continue  # stopped: what follows a failed write is not written
+            try:
+                self._write_items(items)
+            except BaseException as e:  # noqa: BLE001 - handed to the reading thread
+                self._error = e
+
+    def _join(self) -> None:
+        """Wait until the writer thread has written everything queued, and end it."""
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
+
+    def _write_items(self, items: list[tuple[int, float, LedFrame, float]]) -> None:
         t, index, pos, status, temp = self._pack(items)
         full: DiskFull | None = None
         with _quiet_stderr_fd():  # h5py prints tracebacks of freed objects after a failed write
@@ -251,6 +293,8 @@ class FrameWriter:
             if self.appender is None and self._pending:
                 self._open()
             self.write()
+            self._join()
+            self._raise_error()
         except DiskFull:
             self.abandon(close=False)
             raise
@@ -261,6 +305,7 @@ class FrameWriter:
         """Stop writing. After a failed write (`close=False`) the HDF5 file is not touched
         again (closing it after a failed flush can crash the HDF5 library): it is kept
         open in `ABANDONED`; on disk stays what the last successful flush wrote."""
+        self._join()
         if self.appender is not None:
             if close:
                 try:
@@ -287,7 +332,12 @@ class Port:
 
         self.url = url
         try:
-            self.ser = serial.serial_for_url(url, baudrate=baudrate, timeout=0.05)
+            self.ser = serial.serial_for_url(url, baudrate=baudrate, timeout=0.05, do_not_open=True)
+            # pyserial purges the input on open: that would discard the first frames a device
+            # streams as soon as it is connected
+            self.ser.reset_input_buffer = lambda: None
+            self.ser._reset_input_buffer = lambda: None
+            self.ser.open()
         except (serial.SerialException, OSError, ValueError) as e:
             raise ConnectionLost(str(e)) from None
         sock = getattr(self.ser, "_socket", None)

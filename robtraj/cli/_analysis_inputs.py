@@ -1,12 +1,24 @@
-"""Shared by `iso9283`, `deviation` and `report`: recording + calibration → base-frame poses."""
+"""Shared by `iso9283`, `deviation` and `report`: recording + calibration → base-frame poses.
+
+Inputs are checked before any computation: the output paths (`_output.check`), the
+calibration through the one CALIB.json loader, the recording. After the poses, the
+calibration is checked against the recording (`check_same_setup`).
+"""
 
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
+
+import numpy as np
 
 from .._errors import UserError
+from . import _output
+
+#: a calibration whose tool positions miss the recording's by more than this many times its
+#: own residual RMS (and by more than `SETUP_FLOOR_M`) belongs to another setup
+SETUP_FACTOR = 20.0
+SETUP_FLOOR_M = 1e-3
+_SETUP_FRAMES = 2000  # frames compared (evenly spaced), enough for a robust median
 
 
 def add_arguments(p: argparse.ArgumentParser, *, calibration_required: bool = True) -> None:
@@ -20,25 +32,92 @@ def add_arguments(p: argparse.ArgumentParser, *, calibration_required: bool = Tr
     )
     p.add_argument("--weighting", default="led_noise", help="LED weighting for the poses")
     p.add_argument("--json", metavar="PATH", help="write the machine-readable result")
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs")
 
 
-def load(args: argparse.Namespace):
+def load(args: argparse.Namespace, *, need_program: bool = True):
     """(recording, calibration, base-frame poses) for an analysis command."""
-    from ..estimate._base_frame import base_frame_poses, load_calibration
+    from ..calibration_file import load_calibration
+    from ..estimate._base_frame import base_frame_poses
     from ..recording import read_recording
 
+    calib = load_calibration(args.calibration) if args.calibration else None
     rec = read_recording(args.recording)
-    if rec.program is None:
+    if need_program and rec.program is None:
         raise UserError(f"{args.recording}: no /program (the commanded targets) to compare with")
-    if args.calibration:
-        calib = load_calibration(args.calibration)
-    else:
+    if calib is None:
         from ..estimate.calibration import fit
 
         calib = fit(rec)
-    return rec, calib, base_frame_poses(rec, calib, weighting=args.weighting)
+    if not np.isin(rec.led_ids, np.asarray(calib.led_ids)).sum() >= 3:
+        raise UserError(
+            f"{args.recording}: fewer than 3 of its LEDs are in the calibration's constellation "
+            "(a calibration of another tool?)"
+        )
+    bf = base_frame_poses(rec, calib, weighting=args.weighting)
+    if not np.any(bf.valid):
+        raise UserError(f"{args.recording}: no frame has a tool pose with this calibration")
+    check_same_setup(rec, calib, bf, args.recording)
+    return rec, calib, bf
+
+
+def setup_discrepancy(rec, calib, bf) -> float | None:
+    """Median distance [m] between the tool positions measured in `bf` (camera frame) and
+    those the calibration predicts from the robot log; None without a robot log."""
+    import jax.numpy as jnp
+    import jaxlie
+
+    from ..model import interpolate_joints, motion_direction, predict_tool_poses, robot_from_log
+
+    if rec.robot is None or rec.robot.joints.shape[0] < 2:
+        return None
+    est = bf.poses
+    frames = np.flatnonzero(bf.valid)
+    frames = frames[np.linspace(0, frames.size - 1, min(frames.size, _SETUP_FRAMES)).astype(int)]
+    robot = robot_from_log(rec.robot.model, rec.robot.dh)
+    effects = calib.effects_module(rec.robot.joints.shape[1])
+    t = np.asarray(rec.time, float)[frames] + calib.time_offset
+    log_t, joints = np.asarray(rec.robot.time, float), np.asarray(rec.robot.joints, float)
+    q = interpolate_joints(jnp.asarray(log_t), jnp.asarray(joints), jnp.asarray(t))
+    direction = motion_direction(log_t, joints, t)
+    if rec.temperature is not None:
+        drift = np.asarray(rec.temperature, float)[frames] - float(rec.temperature[0])
+    else:
+        drift = (np.asarray(rec.time, float)[frames] - float(rec.time[0])) / 60.0
+
+    def se3(pose):
+        return jaxlie.SE3(
+            jnp.concatenate([jnp.asarray(pose.quaternion_wxyz), jnp.asarray(pose.position)])
+        )
+
+    predicted = predict_tool_poses(
+        robot,
+        effects,
+        se3(calib.camera_from_base),
+        se3(calib.flange_from_tool),
+        q,
+        jnp.asarray(direction),
+        jnp.asarray(np.nan_to_num(drift)),
+    )
+    measured = np.asarray(est.position)[frames]
+    d = np.linalg.norm(np.asarray(predicted.translation()) - measured, axis=1)
+    return float(np.nanmedian(d))
+
+
+def check_same_setup(rec, calib, bf, name: str) -> None:
+    """Refuse a calibration whose predicted tool positions miss the recording's far beyond
+    its own residual RMS: it comes from another setup (camera moved, other tool or robot)."""
+    d = setup_discrepancy(rec, calib, bf)
+    own = calib.residual_rms_m if np.isfinite(calib.residual_rms_m) else 0.0
+    limit = max(SETUP_FACTOR * own, SETUP_FLOOR_M)
+    if d is not None and d > limit:
+        raise UserError(
+            f"{name}: the calibration does not fit this recording: its tool positions are "
+            f"{d * 1e3:.1f} mm (median) from those the robot log predicts, against the "
+            f"calibration's own residual RMS of {own * 1e6:.0f} µm; it belongs to another setup "
+            "(camera moved, other tool or robot): calibrate this setup (`robtraj calibrate`)"
+        )
 
 
 def write_json(path: str | None, doc: dict) -> None:
-    if path:
-        Path(path).write_text(json.dumps(doc, indent=2, allow_nan=False))
+    _output.write_json(path, doc)

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from .._errors import UserError
+from . import _output
 
 
 def register(sub) -> argparse.ArgumentParser:
@@ -50,21 +51,12 @@ def register(sub) -> argparse.ArgumentParser:
     return p
 
 
-def _progress():
-    from rich.console import Console
-
-    console = Console(stderr=True)
-    status = console.status("calibrating")
-    return console, status
-
-
 def run(args: argparse.Namespace) -> int:
+    from .._progress import progress_status
     from ..model import EFFECT_NAMES
     from ..recording import read_recording
 
-    out = Path(args.out)
-    if out.exists() and not args.force:
-        raise UserError(f"{out} exists; choose another name or pass --force")
+    _output.check([args.out, args.json], force=args.force)
     estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())
     bad = [e for e in estimate if e not in EFFECT_NAMES]
     if bad:
@@ -72,20 +64,16 @@ def run(args: argparse.Namespace) -> int:
             f"unknown effect(s) in --estimate: {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})"
         )
     rec = read_recording(args.recording)
+    check_leds_seen(rec, args.recording)
     from ..estimate.calibration import fit
 
-    _, status = _progress()
-    with status:
-        res = fit(rec, estimate=estimate, robust=args.robust, progress=status.update)
+    with progress_status("calibrating") as say:
+        res = fit(rec, estimate=estimate, robust=args.robust, progress=say)
     doc = res.to_json()
     text = json.dumps(doc, indent=1)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(out)
-    if args.json == "-":
-        print(text)
-    elif args.json:
-        Path(args.json).write_text(text)
+    out = Path(args.out)
+    _output.write_text(out, text)
+    _output.write_text(args.json, text)
     s = res.sigma
     t = res.camera_from_base.position
     lines = [
@@ -107,3 +95,16 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"{res.outlier_frames.size} outlier frames")
     print("\n".join(lines))
     return 0 if res.converged else 1
+
+
+def check_leds_seen(rec, name: str) -> None:
+    """Refuse a recording in which no frame shows the 3 LEDs a tool pose needs."""
+    import numpy as np
+
+    seen = np.asarray(rec.visible).sum(1)
+    if seen.size == 0 or seen.max() < 3:
+        most = int(seen.max()) if seen.size else 0
+        raise UserError(
+            f"{name}: at most {most} LED{'s' * (most != 1)} seen in any frame; a tool pose "
+            "(and so the calibration) needs at least 3 LEDs seen at once"
+        )

@@ -7,9 +7,24 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
+from ._args import seed
+
 #: the physics the demo hides in the simulated robot (the workflow must find it)
 HIDDEN = {"joint_compliance": 1.5e-6}  # [rad/(N·m)]: about 0.5 mm of sag at the TCP
 RATE = 250.0  # [Hz] tracker rate of the demo recordings (the device does up to 1000)
+#: unit of each effect's values (robtraj.model.Effects)
+EFFECT_UNITS = {
+    "time_offset": "s",
+    "joint_offset": "rad",
+    "link_length": "m",
+    "joint_compliance": "rad/(N·m)",
+    "backlash": "rad",
+    "led_angle_bias": "m",
+    "tracker_scale": "",
+    "thermal_drift": "m/K",
+}
 
 
 def register(sub) -> argparse.ArgumentParser:
@@ -25,7 +40,8 @@ def register(sub) -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("--out", default="robtraj-demo", metavar="DIR", help="output folder")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0, help="random seed (>= 0)")
+    p.add_argument("--force", action="store_true", help="replace the results in DIR")
     p.set_defaults(func=run)
     return p
 
@@ -41,8 +57,38 @@ class _Steps:
         self.last = now
 
 
+def effect_lines(calib, name: str, hidden=None) -> list[str]:
+    """One line per estimated entry of effect `name`: value ± σ with the unit."""
+    unit = EFFECT_UNITS.get(name, "")
+    sigma = calib.sigma
+    values = np.ravel(np.asarray(calib.effects[name], float))
+    keys = [k for k in calib.parameter_names if k == name or k.startswith(f"{name}[")]
+    hidden_values = None if hidden is None else np.ravel(np.broadcast_to(hidden, values.shape))
+    lines = []
+    for i, v in enumerate(values):
+        key = keys[i] if len(keys) == values.size else f"{name}[{i}]"
+        s = sigma.get(key, 0.0)
+        if s == 0.0 and v == 0.0:
+            continue  # not estimated (fixed at 0)
+        line = f"{key} = {v:.4g} ± {s:.2g} {unit}".rstrip()
+        if hidden_values is not None:
+            line += f" (hidden: {hidden_values[i]:g})"
+        lines.append(line)
+    return lines
+
+
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
+    from . import _output
+
+    out = Path(args.out)
+    _output.check(folders=[out], force=args.force)
+    with _output.new_folder(out) as tmp:
+        code = _run(args, tmp)
+    print(f"results in {out}/")
+    return code
+
+
+def _run(args: argparse.Namespace, out: Path) -> int:
 
     from ..analysis import write_tum
     from ..analysis.discrepancy import discover
@@ -57,8 +103,6 @@ def run(args: argparse.Namespace) -> int:
     from ._deviation import deviation_of
     from ._iso9283 import iso_of, print_table
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     step = _Steps()
     hidden = ", ".join(f"{k}={v:g}" for k, v in HIDDEN.items())
 
@@ -123,8 +167,9 @@ def run(args: argparse.Namespace) -> int:
     calib = fit(cal_rec, estimate=tuple(named)) if named else nominal
     (out / "calibration.json").write_text(json.dumps(calib.to_json(), indent=1))
     for name in named:
-        got = np.round(np.asarray(calib.effects[name], float), 9).tolist()
-        step(f"calibration.json: {name} = {got} (hidden: {HIDDEN.get(name, 'not hidden')})")
+        step(f"calibration.json: {name}" + ("" if name in HIDDEN else " (not hidden)"))
+        for line in effect_lines(calib, name, HIDDEN.get(name)):
+            print(f"           {line}")
 
     # 6. ISO 9283 and path deviation of the cube test
     bf = base_frame_poses(iso_rec, calib)
@@ -160,5 +205,5 @@ def run(args: argparse.Namespace) -> int:
         out / "report", iso_rec, calib, bf, deviation=dev, reference=ref, iso=iso,
         extra_sections=extra, name="iso_cube.h5 (simulated)",
     )  # fmt: skip
-    step(f"report: {path}")
+    step(f"report: {Path(args.out) / path.relative_to(out)}")
     return 0

@@ -6,7 +6,7 @@ import argparse
 
 import numpy as np
 
-from . import _analysis_inputs
+from . import _analysis_inputs, _output
 
 
 def register(sub) -> argparse.ArgumentParser:
@@ -37,6 +37,7 @@ def deviation_of(rec, bf):
 
 
 def run(args: argparse.Namespace) -> int:
+    _output.check([args.json], [args.tum], force=args.force)
     rec, calib, bf = _analysis_inputs.load(args)
     ref, dev = deviation_of(rec, bf)
     s = dev.summary()
@@ -61,10 +62,10 @@ def run(args: argparse.Namespace) -> int:
         from ..analysis import write_tum
 
         out = Path(args.tum)
-        out.mkdir(parents=True, exist_ok=True)
         v = bf.valid
-        write_tum(out / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
-        write_tum(out / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
+        with _output.new_folder(out) as tmp:
+            write_tum(tmp / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
+            write_tum(tmp / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
         print(f"TUM trajectories in {out}/ (measured.tum, commanded.tum)")
     _analysis_inputs.write_json(args.json, doc)
     return 0

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
+
+from . import _output
 
 
 def register(sub) -> argparse.ArgumentParser:
@@ -35,20 +36,16 @@ def register(sub) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .._errors import UserError
-    from .._progress import progress_bar
+    from .._progress import progress_status
     from ..analysis.discrepancy import discover
     from ..recording import read_recording
+    from ._calibrate import check_leds_seen
 
-    targets = [Path(args.json)] if args.json else []
-    if args.report:
-        targets += [Path(args.report) / f"discrepancy_{k}.png" for k in ("gap", "structure")]
-    for t in targets:
-        if t.exists() and not args.force:
-            raise UserError(f"{t} exists; choose another name or pass --force")
+    _output.check([args.json], [args.report], force=args.force)
     rec = read_recording(args.recording)
-    with progress_bar("discrepancy", 1) as _:
-        res = discover(rec)
+    check_leds_seen(rec, args.recording)
+    with progress_status("discrepancy") as say:
+        res = discover(rec, progress=say)
     doc = res.to_json()
     print(
         f"gap before: {doc['gap_before_m'] * 1e6:.1f} µm (noise σ {doc['noise_sigma_m'] * 1e6:.1f} µm per axis)"
@@ -74,9 +71,9 @@ def run(args: argparse.Namespace) -> int:
             )
     else:
         print("no structured residual left beyond the noise")
-    if args.json:
-        Path(args.json).write_text(json.dumps(doc, indent=2, default=float))
+    _output.write_json(args.json, doc)
     if args.report:
-        figs = res.figures(args.report)
+        with _output.new_folder(args.report) as tmp:
+            figs = [Path(args.report) / Path(f).relative_to(tmp) for f in res.figures(tmp)]
         print(f"figures: {', '.join(str(f) for f in figs)}")
     return 0

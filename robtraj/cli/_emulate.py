@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import sys
-from pathlib import Path
 from typing import Any
 
 from .._errors import UserError
 from ..recording import read_recording
+from . import _output
+from ._args import seed
 
 
 def register(subparsers: Any) -> argparse.ArgumentParser:
@@ -41,7 +41,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         "--rate", type=float, metavar="HZ", help="frame rate (default: the recording's; 0: unpaced)"
     )
     p.add_argument("--faults", metavar="SPEC", help="faults to inject (see below)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the faults (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed of the faults (default 0)")
     p.add_argument("--ledger", metavar="PATH", help="write the fate of every message (JSON)")
     p.add_argument(
         "--port-file", metavar="PATH", help="write the URL a recorder should open once serving"
@@ -53,6 +53,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         metavar="S",
         help="give up when no recorder connects within S seconds (default 60)",
     )
+    p.add_argument("--force", action="store_true", help="overwrite an existing ledger")
     p.set_defaults(func=run)
     return p
 
@@ -64,6 +65,8 @@ def _stop(signum: int, frame: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from acquisition.emulator import Emulator, open_transport, parse_faults, write_ledger
 
+    _output.check([args.ledger], force=args.force)
+    _output.check([args.port_file], force=True)  # a rendezvous file, rewritten each run
     faults = parse_faults(args.faults)
     if args.rate is not None and not args.rate >= 0:
         raise UserError(f"--rate must be >= 0, got {args.rate}")
@@ -86,9 +89,7 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
         if args.port_file:
-            tmp = Path(f"{args.port_file}.tmp-{os.getpid()}")
-            tmp.write_text(transport.url + "\n")
-            os.replace(tmp, args.port_file)
+            _output.write_text(args.port_file, transport.url + "\n")
         signal.signal(signal.SIGTERM, _stop)
         try:
             result = emulator.run()

@@ -8,6 +8,7 @@ from typing import Any
 
 from .._errors import UserError
 from ..recording import Recording, write_recording
+from . import _output
 
 
 def register(subparsers: Any) -> argparse.ArgumentParser:
@@ -100,17 +101,16 @@ def _pose_mapping(args: argparse.Namespace) -> dict[str, Any] | None:
     return base
 
 
-def _check_out(out: Path, force: bool) -> None:
-    if out.exists() and not force:
-        raise UserError(f"{out} exists; refusing to overwrite it (use --force or another name)")
-
-
 def run(args: argparse.Namespace) -> int:
     from .. import importers
 
     src, out = Path(args.src), Path(args.out)
     if not src.exists():
         raise UserError(f"{src}: no such file")
+    if not src.is_dir():
+        _output.check([out], force=args.force)
+    if args.rate is not None and not args.rate > 0:
+        raise UserError(f"--rate must be > 0 Hz, got {args.rate}")
     fmt = args.format or importers.guess_format(src)
     if fmt == "pose-csv":
         if args.constellation or args.model_id is not None:
@@ -132,8 +132,8 @@ def run(args: argparse.Namespace) -> int:
         from acquisition.natnet import import_natnet
 
         rec = import_natnet(src, model_id=args.model_id, rate=args.rate)
-    _check_out(out, args.force)
-    write_recording(rec, out, overwrite=args.force)
+    with _output.new_file(out) as tmp:
+        write_recording(rec, tmp)
     _say(out, rec)
     return 0
 
@@ -143,16 +143,16 @@ def _run_folder(
 ) -> int:
     from ..importers import import_pose_folder
 
-    recs = import_pose_folder(src, preset=preset, mapping=mapping, rate=args.rate)
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: SRC is a folder, so -o must name a folder")
-    targets = {name: out / (name.removesuffix(".csv").replace("/", "_") + ".h5") for name in recs}
-    for path in targets.values():
-        _check_out(path, args.force)
-    out.mkdir(parents=True, exist_ok=True)
+    _output.check(folders=[out], force=args.force)
+    recs = import_pose_folder(src, preset=preset, mapping=mapping, rate=args.rate)
+    names = {name: name.removesuffix(".csv").replace("/", "_") + ".h5" for name in recs}
+    with _output.new_folder(out) as tmp:
+        for name, rec in recs.items():
+            write_recording(rec, tmp / names[name])
     for name, rec in recs.items():
-        write_recording(rec, targets[name], overwrite=args.force)
-        _say(targets[name], rec)
+        _say(out / names[name], rec)
     return 0
 
 

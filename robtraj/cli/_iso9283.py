@@ -6,7 +6,7 @@ import argparse
 
 import numpy as np
 
-from . import _analysis_inputs
+from . import _analysis_inputs, _output
 
 
 def register(sub) -> argparse.ArgumentParser:
@@ -48,8 +48,33 @@ def print_table(res) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    _output.check([args.json], force=args.force)
     rec, calib, bf = _analysis_inputs.load(args)
     res = iso_of(rec, bf)
     print_table(res)
     _analysis_inputs.write_json(args.json, res.to_json())
-    return 0
+    return report_missing(res)
+
+
+def missing_characteristics(res) -> list[str]:
+    """The key characteristics ISO 9283 could not give here (AP/RP, AT/RT NaN or absent)."""
+    out = []
+    if not res.poses and not res.paths:
+        out.append("no test pose and no test path found in the measured poses")
+    for p in res.poses:
+        if not (np.isfinite(p.AP) and np.isfinite(p.RP)):
+            out.append(f"pose {p.name}: AP/RP not defined ({p.n_cycles} cycles measured)")
+    for path in res.paths:
+        if not (np.isfinite(path.AT) and np.isfinite(path.RT)):
+            out.append(f"path {path.name}: AT/RT not defined ({path.n_cycles} cycles measured)")
+    return out
+
+
+def report_missing(res) -> int:
+    """A warning on stderr per missing characteristic; exit code 1 if any, else 0."""
+    import sys
+
+    missing = missing_characteristics(res)
+    for m in missing:
+        print(f"robtraj: warning: {m}", file=sys.stderr)
+    return 1 if missing else 0

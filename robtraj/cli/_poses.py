@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
 from .._errors import UserError
+from . import _output
 
 
 def register(sub) -> argparse.ArgumentParser:
@@ -83,13 +83,15 @@ def run(args: argparse.Namespace) -> int:
     from ..recording import read_recording
 
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise UserError(f"{out} exists; choose another name or pass --force")
     rec = read_recording(args.recording)
+    _output.check([out, args.json], force=args.force)
+    if args.window is not None and args.window < 2:
+        raise UserError(f"--window must be at least 2 frames, got {args.window}")
     est = estimate_poses(
         rec, weighting=args.weighting, window=args.window, register=not args.nominal
     )
-    write_poses(est, out, recording=args.recording, overwrite=args.force)
+    with _output.new_file(out) as tmp:
+        write_poses(est, tmp, recording=args.recording)
     s = summarise(est, rec)
     line = (
         f"wrote {out}: {s['valid_frames']}/{s['frames']} frames with a pose, median residual "
@@ -104,6 +106,5 @@ def run(args: argparse.Namespace) -> int:
     print(line)
     for note in est.notes:
         print(f"note: {note}")
-    if args.json:
-        Path(args.json).write_text(json.dumps(s, indent=2))
+    _output.write_json(args.json, s)
     return 0

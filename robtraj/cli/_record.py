@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import sys
 from typing import Any
 
 from .._errors import UserError
+from . import _output
 
 
 def register(subparsers: Any) -> argparse.ArgumentParser:
@@ -56,6 +56,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.duration is not None and not args.duration > 0:
         raise UserError(f"--duration must be > 0 s, got {args.duration}")
+    if not args.reconnect_timeout >= 0:
+        raise UserError(f"--reconnect-timeout must be >= 0 s, got {args.reconnect_timeout}")
+    # the recording itself is written in place while recording (a crash keeps what was
+    # flushed), so only the checks of the output rule apply to it
+    _output.check([args.out, args.json], force=args.force)
     recorder = Recorder(
         args.port,
         args.out,
@@ -76,9 +81,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(summary, f, indent=1)
+    _output.write_json(args.json, summary, indent=1)
     print(format_summary(summary), file=sys.stderr)
     reason = summary["stop_reason"]
     if reason == "disk_full":

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from .._errors import UserError
-from . import _analysis_inputs
+from . import _analysis_inputs, _output
 
 
 def register(sub) -> argparse.ArgumentParser:
@@ -27,7 +27,8 @@ def register(sub) -> argparse.ArgumentParser:
 def _inputs(args: argparse.Namespace, notes: list[str]):
     """(recording, calibration or None, base-frame poses or None): what can be had from
     this recording; what cannot goes to `notes`."""
-    from ..estimate._base_frame import base_frame_poses, load_calibration
+    from ..calibration_file import load_calibration
+    from ..estimate._base_frame import base_frame_poses
     from ..recording import read_recording
 
     rec = read_recording(args.recording)
@@ -49,6 +50,8 @@ def _inputs(args: argparse.Namespace, notes: list[str]):
     bf = None
     if calib is not None:
         bf = base_frame_poses(rec, calib, weighting=args.weighting)
+        if args.calibration:
+            _analysis_inputs.check_same_setup(rec, calib, bf, args.recording)
     if rec.program is None:
         notes.append("ISO 9283 and path deviation left out: no program (/program)")
     elif bf is None:
@@ -63,11 +66,12 @@ def run(args: argparse.Namespace) -> int:
     from ..analysis import write_tum
     from ..report._recording_report import recording_report
     from ._deviation import deviation_of
-    from ._iso9283 import iso_of
+    from ._iso9283 import iso_of, missing_characteristics
 
+    out = Path(args.out)
+    _output.check([args.json], [out], force=args.force)
     notes: list[str] = []
     rec, calib, bf = _inputs(args, notes)
-    out = Path(args.out)
     ref = dev = iso = None
     if rec.program is not None and bf is not None:
         try:
@@ -78,24 +82,28 @@ def run(args: argparse.Namespace) -> int:
             notes.append(f"path deviation left out: {e}")
         try:
             iso = iso_of(rec, bf)
+            notes += [f"ISO 9283: {m}" for m in missing_characteristics(iso)]
         except UserError as e:
             notes.append(f"ISO 9283 left out: {e}")
-    path = recording_report(
-        out,
-        rec,
-        calib,
-        bf,
-        deviation=dev,
-        reference=ref,
-        iso=iso,
-        name=Path(args.recording).name,
-        notes=notes,
-    )
-    if bf is not None:
-        v = bf.valid
-        write_tum(out / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
-        if dev is not None:
-            write_tum(out / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
+    with _output.new_folder(out) as tmp:
+        path = recording_report(
+            tmp,
+            rec,
+            calib,
+            bf,
+            deviation=dev,
+            reference=ref,
+            iso=iso,
+            name=Path(args.recording).name,
+            notes=notes,
+        )
+        if bf is not None:
+            v = bf.valid
+            write_tum(tmp / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
+            if dev is not None:
+                foot, foot_q = dev.foot[v], dev.foot_quaternion_wxyz[v]
+                write_tum(tmp / "commanded.tum", bf.time[v], foot, foot_q)
+    path = out / path.relative_to(tmp)
     _analysis_inputs.write_json(
         args.json,
         {

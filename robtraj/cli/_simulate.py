@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import UserError
+from . import _output
+from ._args import seed
 
 
 def register(sub) -> argparse.ArgumentParser:
@@ -27,7 +29,7 @@ def register(sub) -> argparse.ArgumentParser:
     )
     p.add_argument("out", metavar="OUT.h5", help="recording to write (must not exist)")
     p.add_argument("--scenario", default="paper", choices=sorted(SCENARIOS))
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0, help="random seed (>= 0)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="[s]")
     p.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="tracker rate [Hz]")
     p.add_argument(
@@ -50,8 +52,11 @@ def run(args: argparse.Namespace) -> int:
     from ..sim import simulate
 
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise UserError(f"{out} exists; choose another name or pass --force")
+    _output.check([out], force=args.force)
+    if args.duration is not None and not args.duration > 0:
+        raise UserError(f"--duration must be > 0 s, got {args.duration}")
+    if not args.rate > 0:
+        raise UserError(f"--rate must be > 0 Hz, got {args.rate}")
     effects = dict(parse_effect(s) for s in args.effect)
     rec = simulate(
         args.scenario,
@@ -61,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
         effects=effects,
         truth=not args.no_truth,
     )
-    write_recording(rec, out, overwrite=args.force)
+    with _output.new_file(out) as tmp:
+        write_recording(rec, tmp)
     vis = rec.visible
     print(
         f"wrote {out}: {args.scenario}, {rec.n_frames} frames at {args.rate:g} Hz "

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
-import json
-from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
+from ..calibration_file import load_calibration as load_calibration  # noqa: F401
 from ..jax_ops import quat_conjugate, quat_multiply, quat_rotate
 from ..recording import Recording
 from ._poses import PoseEstimate, estimate_poses
@@ -25,20 +24,6 @@ class BaseFramePoses:
     quaternion_wxyz: np.ndarray
     valid: np.ndarray
     poses: PoseEstimate
-
-
-def load_calibration(path: str | Path):
-    """Read a CALIB.json written by `robtraj calibrate`."""
-    from .calibration import CalibrationResult
-
-    path = Path(path)
-    if not path.exists():
-        raise UserError(f"{path}: no such file (run `robtraj calibrate` first)")
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise UserError(f"{path}: not JSON ({e.msg} at line {e.lineno})") from None
-    return CalibrationResult.from_json(doc)
 
 
 def base_frame_poses(

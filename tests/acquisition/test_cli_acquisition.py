@@ -224,7 +224,7 @@ def test_bad_port_process_exits_2_with_one_line(tmp_path):
             ["record", "--port", "loop://", "-o", "{tmp}/o.h5", "--protocol", "x"],
             "unknown protocol",
         ),
-        (["record", "--port", "loop://", "-o", "{tmp}/no/o.h5"], "no such directory"),
+        (["record", "--port", "loop://", "-o", "{tmp}/no/o.h5"], "does not exist"),
         (["emulate", "{tmp}/missing.h5", "--port", "pty"], "no such file"),
         (["emulate", "{tmp}/src.h5", "--port", "/dev/ttyS0"], "serves socket://"),
         (["emulate", "{tmp}/src.h5", "--port", "pty", "--faults", "melt=1"], "bad fault"),

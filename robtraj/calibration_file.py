@@ -1,0 +1,166 @@
+"""Reading CALIB.json (DESIGN section 8): the one schema-checked loader every command uses.
+
+A calibration may come from `robtraj calibrate` or from another source; the loader checks
+the fields the analysis needs and turns every defect into one `UserError` naming the field:
+
+- ``camera_from_base``, ``flange_from_tool``: ``{"position": [x, y, z] (m),
+  "quaternion_wxyz": [w, x, y, z]}``, finite; a quaternion of norm 0 is refused, one off
+  unit norm by more than 1e-3 too (rounding below that is normalised away);
+- ``constellation``: ``{"led_ids": [..], "positions": [[x, y, z], ..] (m, tool frame)}``,
+  at least 3 distinct LEDs;
+- optional: ``time_offset`` (s), ``residual_rms_m`` and ``noise_sigma_m`` (m, >= 0 or
+  null), ``effects`` (names of `robtraj.model.EFFECT_NAMES`, finite values), ``covariance``
+  (null, or ``{"parameters": [..], "matrix": [[..]]}`` square of that size, finite).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._errors import UserError
+
+_UNIT_TOLERANCE = 1e-3
+
+
+def _numbers(value: Any, shape: tuple[int, ...] | None, where: str) -> np.ndarray:
+    """`value` as a finite float array of `shape` (None: any), or `UserError` naming `where`."""
+    if isinstance(value, (str, bytes, dict)) or value is None:
+        raise UserError(f"{where} must be numbers, got {type(value).__name__}")
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UserError(f"{where} must be numbers, got {json.dumps(value)[:60]}") from None
+    if shape is not None and a.shape != shape:
+        want = "×".join(map(str, shape)) or "a single number"
+        raise UserError(f"{where} must be {want}, got shape {list(a.shape)}")
+    if not np.all(np.isfinite(a)):
+        raise UserError(f"{where} holds a non-finite value")
+    return a
+
+
+def _pose(doc: dict, key: str) -> dict:
+    p = doc.get(key)
+    if not isinstance(p, dict):
+        raise UserError(f"'{key}' must be an object with position and quaternion_wxyz")
+    for field in ("position", "quaternion_wxyz"):
+        if field not in p:
+            raise UserError(f"'{key}' lacks '{field}'")
+    t = _numbers(p["position"], (3,), f"{key}.position")
+    q = _numbers(p["quaternion_wxyz"], (4,), f"{key}.quaternion_wxyz")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > _UNIT_TOLERANCE:
+        raise UserError(f"{key}.quaternion_wxyz has norm {norm:.6g}; a rotation needs norm 1")
+    return {"position": t.tolist(), "quaternion_wxyz": (q / norm).tolist()}
+
+
+def _constellation(doc: dict) -> dict:
+    c = doc.get("constellation")
+    if not isinstance(c, dict) or "led_ids" not in c or "positions" not in c:
+        raise UserError("'constellation' must be an object with led_ids and positions")
+    ids = _numbers(c["led_ids"], None, "constellation.led_ids")
+    if ids.ndim != 1 or np.any(ids != np.round(ids)) or np.any(ids < 0):
+        raise UserError("constellation.led_ids must be a list of non-negative integers")
+    if len(set(ids.tolist())) != ids.size:
+        raise UserError("constellation.led_ids repeats an LED id")
+    if ids.size < 3:
+        raise UserError(f"constellation has {ids.size} LEDs; a tool pose needs at least 3")
+    pos = _numbers(c["positions"], (ids.size, 3), "constellation.positions")
+    return {"led_ids": ids.astype(int).tolist(), "positions": pos.tolist()}
+
+
+def _optional_number(doc: dict, key: str, *, nonnegative: bool = False) -> float | None:
+    v = doc.get(key)
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise UserError(f"'{key}' must be a finite number or null, got {json.dumps(v)[:40]}")
+    if nonnegative and v < 0:
+        raise UserError(f"'{key}' must be >= 0, got {v}")
+    return float(v)
+
+
+def _effects(doc: dict) -> dict:
+    from .model import EFFECT_NAMES
+
+    e = doc.get("effects") or {}
+    if not isinstance(e, dict):
+        raise UserError("'effects' must be an object {name: value}")
+    unknown = sorted(set(e) - set(EFFECT_NAMES))
+    if unknown:
+        raise UserError(
+            f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECT_NAMES)})"
+        )
+    return {k: _numbers(v, None, f"effects.{k}").tolist() for k, v in e.items()}
+
+
+def _covariance(doc: dict) -> dict | None:
+    cov = doc.get("covariance")
+    if cov is None:
+        return None
+    if not isinstance(cov, dict) or "parameters" not in cov or "matrix" not in cov:
+        raise UserError("'covariance' must be null or an object with parameters and matrix")
+    names = cov["parameters"]
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise UserError("covariance.parameters must be a list of names")
+    m = _numbers(cov["matrix"], (len(names), len(names)), "covariance.matrix")
+    return {"parameters": names, "matrix": m.tolist()}
+
+
+def parse_calibration(doc: Any, name: str = "CALIB.json"):
+    """A `CalibrationResult` from the parsed JSON `doc`; `UserError` (prefixed `name`) on any
+    schema defect."""
+    from .estimate._calib_result import CalibrationResult
+
+    try:
+        if not isinstance(doc, dict):
+            raise UserError(f"must hold a JSON object, not a {type(doc).__name__}")
+        clean = dict(doc)
+        clean["camera_from_base"] = _pose(doc, "camera_from_base")
+        clean["flange_from_tool"] = _pose(doc, "flange_from_tool")
+        clean["constellation"] = _constellation(doc)
+        clean["effects"] = _effects(doc)
+        for key in ("time_offset", "residual_rms_m", "noise_sigma_m"):
+            v = _optional_number(doc, key, nonnegative=key != "time_offset")
+            clean.pop(key, None)
+            if v is not None:
+                clean[key] = v
+        cov = _covariance(doc)
+        clean.pop("covariance", None)
+        if cov is not None:
+            clean["covariance"] = cov
+        gauge = doc.get("gauge")
+        if isinstance(gauge, dict) and "reference_constellation" in gauge:
+            ref = _numbers(gauge["reference_constellation"], None, "gauge.reference_constellation")
+            if ref.ndim != 2 or ref.shape[1:] != (3,):
+                raise UserError("gauge.reference_constellation must be a list of [x, y, z]")
+        return CalibrationResult.from_json(clean)
+    except UserError as e:
+        raise UserError(f"{name}: {e}") from None
+
+
+def load_calibration(path: str | Path):
+    """Read and check a CALIB.json file (module docstring); `UserError` on any defect."""
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: no such file (run `robtraj calibrate` first)")
+    if not path.is_file():
+        raise UserError(f"{path}: not a file")
+    raw = path.read_bytes()
+    if raw.startswith(b"\x89HDF"):
+        raise UserError(f"{path}: an HDF5 file, not a CALIB.json (from `robtraj calibrate`)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a text file, so not a CALIB.json") from None
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise UserError(f"{path}: not JSON ({e.msg} at line {e.lineno})") from None
+    except RecursionError:
+        raise UserError(f"{path}: JSON nested too deeply") from None
+    return parse_calibration(doc, str(path))

@@ -1,0 +1,96 @@
+"""Results without meaning are refused or warned about, on a short simulated ISO cube run:
+a calibration of another setup is refused; NaN characteristics are warned about (exit 1)."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+from cli_helpers import assert_one_line_error, run_cli
+
+from robtraj.cli import _analysis_inputs
+from robtraj.recording import write_recording
+from robtraj.sim import simulate
+
+SHIFT = np.array([0.05, 0.0, 0.0])  # [m] the camera moved by 50 mm
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sim")
+    # 8 s at 25 Hz: too short for a complete cycle of every ISO path (NaN characteristics)
+    rec = simulate("iso_cube", seed=3, duration=8.0, rate=25.0)
+    write_recording(rec, d / "iso.h5")
+    tr = rec.truth
+
+    def pose(p):
+        return {"position": p.position.tolist(), "quaternion_wxyz": p.quaternion_wxyz.tolist()}
+
+    doc = {
+        "camera_from_base": pose(tr.camera_from_base),
+        "flange_from_tool": pose(tr.flange_from_tool),
+        "constellation": {
+            "led_ids": np.asarray(rec.tool.led_ids).tolist(),
+            "positions": np.asarray(tr.constellation).tolist(),
+        },
+        "time_offset": 0.0,
+        "covariance": None,  # a calibration from another source
+        # what a calibration of this setup reports: 3-D LED residual RMS of a few 10 µm
+        "residual_rms_m": 40e-6,
+    }
+    (d / "same.json").write_text(json.dumps(doc))
+    moved = copy.deepcopy(doc)
+    moved["camera_from_base"]["position"] = (tr.camera_from_base.position + SHIFT).tolist()
+    (d / "moved.json").write_text(json.dumps(moved))
+    return d, rec
+
+
+def test_calibration_of_another_setup_is_refused(setup, capsys, tmp_path):
+    d, rec = setup
+    for command in ("iso9283",):  # deviation reads its inputs through the same `load`
+        code, _, err = run_cli(
+            capsys, command, d / "iso.h5", "--calibration", d / "moved.json",
+            "--json", tmp_path / f"{command}.json",
+        )  # fmt: skip
+        line = assert_one_line_error(code, err, "another setup", "robtraj calibrate")
+        assert not (tmp_path / f"{command}.json").exists()
+    # the distance it quotes is the camera shift: the measured camera-frame poses do not
+    # depend on camera←base, the predicted ones move with it rigidly
+    quoted = float(line.split("are ")[1].split(" mm")[0]) * 1e-3
+    assert abs(quoted - np.linalg.norm(SHIFT)) < 1e-3, line
+
+
+def test_same_setup_passes_and_nan_characteristics_are_warned(setup, capsys, tmp_path):
+    d, rec = setup
+    out = tmp_path / "iso.json"
+    code, stdout, err = run_cli(
+        capsys, "iso9283", d / "iso.h5", "--calibration", d / "same.json", "--json", out
+    )
+    doc = json.loads(out.read_text())
+    warnings = [line for line in err.splitlines() if line.startswith("robtraj: warning: ")]
+    undefined = [f"path {name}" for name, p in doc["paths"].items() if p["AT_mm"] is None] + [
+        f"pose {name}" for name, p in doc["poses"].items() if p["AP_mm"] is None
+    ]
+    assert undefined, "the 8 s run was meant to leave some characteristic undefined"
+    assert code == 1, err
+    for u in undefined:
+        assert any(w.startswith(f"robtraj: warning: {u}:") for w in warnings), (u, err)
+    assert "Traceback" not in err
+
+
+@pytest.mark.exhaustive
+def test_setup_discrepancy_of_the_true_calibration_is_at_noise_level(setup):
+    d, rec = setup
+    from robtraj.calibration_file import load_calibration
+    from robtraj.estimate._base_frame import base_frame_poses
+
+    calib = load_calibration(d / "same.json")
+    bf = base_frame_poses(rec, calib)
+    got = _analysis_inputs.setup_discrepancy(rec, calib, bf)
+    # per-frame pose error of an 18-LED fit with 15-75 µm LED noise: well under 0.2 mm
+    assert got < 2e-4, got
+    moved = load_calibration(d / "moved.json")
+    shifted = _analysis_inputs.setup_discrepancy(rec, moved, bf)
+    assert abs(shifted - np.linalg.norm(SHIFT)) < 2e-4 + got
