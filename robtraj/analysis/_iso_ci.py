@@ -3,11 +3,14 @@
 Where the sampling distribution is known for normally scattered cycles the interval is
 exact: Student's t for a mean (AP components, AD, AV, mean stabilisation time, …) and
 the χ² interval for a 3·S term (RD, RV, RP per orientation component). Every other
-characteristic (lengths of means, l̄ + 3·S_l, maxima over planes, differences between
-groups of cycles) gets a bias-corrected and accelerated (BCa) bootstrap over cycles,
-stratified where cycles fall into groups (approach directions, early/late cycles): the
-plain percentile bootstrap under-covers with few cycles, BCa corrects its first-order
-bias and skew (Efron 1987). Statistics are vectorised over leading batch axes so a
+RP and the single-angle RP (l̄ + 3·S_l of distances to the mean) come from their
+Gaussian sampling distribution (`rp_gaussian_interval`). Every other characteristic
+(lengths of means, maxima over planes, differences between groups of cycles) gets a studentised (bootstrap-t) interval over cycles, stratified
+where cycles fall into groups (approach directions, early/late cycles), each resample
+standardised by its jackknife standard error (second-order accurate, where the
+percentile bootstrap under-covers with few cycles). Bootstraps of l̄ + 3·S_l
+under-cover even at 30 cycles (measured: BCa 85 %, studentised 92 %), hence the
+Gaussian interval for RP. Statistics are vectorised over leading batch axes so a
 whole bootstrap is one array expression.
 """
 
@@ -17,7 +20,8 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-from scipy import special, stats
+from jaxtyping import Float
+from scipy import stats
 
 LEVEL = 0.95
 N_BOOT = 2000
@@ -51,48 +55,51 @@ def three_s_interval(x: np.ndarray) -> tuple[Any, Any]:
     return lo, hi
 
 
-def bca_interval(
+def _jackknife_se(stat: Callable[..., Any], strata: Sequence[np.ndarray], batch: int) -> Any:
+    """Stratified jackknife standard error of `stat`, batched: strata have `batch`
+    leading axes before the cycle axis; leave one cycle out of one stratum at a time."""
+    var = 0.0
+    for k, s in enumerate(strata):
+        n = s.shape[batch]
+        if n < 2:
+            continue
+        keep = np.flatnonzero(~np.eye(n, dtype=bool)).reshape(n, n - 1) % n
+        args = [np.expand_dims(o, batch) for o in strata]  # a leave-out axis before cycles
+        args[k] = np.take(s, keep, axis=batch)
+        u = stat(*args)  # (…, n)
+        var = var + (n - 1) / n * np.sum((u - u.mean(axis=-1, keepdims=True)) ** 2, axis=-1)
+    return np.sqrt(var)
+
+
+def studentized_interval(
     stat: Callable[..., Any],
     strata: Sequence[np.ndarray],
     rng: np.random.Generator,
     n_boot: int = N_BOOT,
 ) -> Interval:
-    """BCa bootstrap interval of `stat(*strata)`, resampling cycles within each stratum.
+    """Studentised (bootstrap-t) interval of `stat(*strata)`, resampling cycles within
+    each stratum and standardising each resample by its own jackknife standard error.
 
     `strata`: arrays with cycles on axis 0; `stat` takes one array per stratum with any
-    leading batch axes before the cycle axis and returns the statistic per batch element.
+    leading batch axes before the cycle axis (the same for all) and returns the
+    statistic per batch element.
     """
     strata = [np.asarray(s, np.float64) for s in strata]
-    if any(s.shape[0] < 1 for s in strata) or sum(s.shape[0] for s in strata) < 3:
+    if any(s.shape[0] < 2 for s in strata):
         return NAN_INTERVAL
     theta = float(stat(*strata))
-    if not np.isfinite(theta):
+    se = float(_jackknife_se(stat, strata, 0))
+    if not (np.isfinite(theta) and np.isfinite(se)):
         return NAN_INTERVAL
-    boot = stat(*[s[rng.integers(0, s.shape[0], (n_boot, s.shape[0]))] for s in strata])
-    boot = boot[np.isfinite(boot)]
-    if boot.size < n_boot // 2 or np.ptp(boot) == 0:
-        return NAN_INTERVAL if boot.size < n_boot // 2 else (theta, theta)
-    p = (np.sum(boot < theta) + 0.5 * np.sum(boot == theta)) / boot.size
-    z0 = special.ndtri(np.clip(p, 1.0 / (boot.size + 1), boot.size / (boot.size + 1)))
-    # acceleration from the jackknife: leave one cycle out of one stratum at a time
-    jack = []
-    for k, s in enumerate(strata):
-        n = s.shape[0]
-        if n < 2:
-            continue
-        keep = np.flatnonzero(~np.eye(n, dtype=bool)).reshape(n, n - 1) % n
-        args = [np.broadcast_to(o, (n, *o.shape)) for o in strata]
-        args[k] = s[keep]
-        jack.append(stat(*args))
-    u = np.concatenate(jack) if jack else np.zeros(1)
-    u = u[np.isfinite(u)]
-    d = u.mean() - u
-    den = 6.0 * np.sum(d**2) ** 1.5
-    a = float(np.sum(d**3) / den) if den > 0 else 0.0
-    z = special.ndtri(np.array([0.5 - LEVEL / 2, 0.5 + LEVEL / 2]))
-    alpha = special.ndtr(z0 + (z0 + z) / (1.0 - a * (z0 + z)))
-    lo, hi = np.quantile(boot, alpha)
-    return float(lo), float(hi)
+    if se == 0.0:
+        return theta, theta
+    boot = [s[rng.integers(0, s.shape[0], (n_boot, s.shape[0]))] for s in strata]
+    t = (stat(*boot) - theta) / _jackknife_se(stat, boot, 1)
+    t = t[np.isfinite(t)]
+    if t.size < n_boot // 2:
+        return NAN_INTERVAL
+    q_lo, q_hi = np.quantile(t, [0.5 - LEVEL / 2, 0.5 + LEVEL / 2])
+    return theta - q_hi * se, theta - q_lo * se
 
 
 def fold_abs(lo: float, hi: float) -> Interval:
@@ -115,10 +122,6 @@ def rp_stat(x: np.ndarray) -> Any:
     """ISO 9283 RP = l̄ + 3·S_l of points `(…, n, 3)`."""
     l = np.linalg.norm(x - x.mean(axis=-2, keepdims=True), axis=-1)
     return l.mean(axis=-1) + 3.0 * np.std(l, axis=-1, ddof=1)
-
-
-def mean_plus_3s(v: np.ndarray) -> Any:
-    return v.mean(axis=-1) + 3.0 * np.std(v, axis=-1, ddof=1)
 
 
 def aligned_mean_quaternion(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -145,3 +148,32 @@ def with_intervals(
         ok = np.isfinite(lo) and np.isfinite(hi)
         out[f"{key}_ci95"] = [float(lo) * scale, float(hi) * scale] if ok else None
     return out
+
+
+_Z = np.random.default_rng(9283).standard_normal((100_000, 3))  # fixed: deterministic moments
+
+
+def rp_gaussian_interval(deviation: Float[np.ndarray, "cycles 3"]) -> Interval:
+    """Interval of RP = E l + 3·SD l, l = |z|, for cycles scattered as z ~ N(0, Σ).
+
+    Σ is the sample covariance of `deviation` (vectors from the cycles' mean); RP(Σ)
+    scales with √tr Σ, and tr Σ̂ is Satterthwaite-distributed as tr Σ·χ²_ν/ν with
+    ν = (n − 1)(tr Σ)²/tr Σ² (exact for isotropic scatter, ν = 3(n − 1)). Returns
+    RP(Σ̂)·√(ν/χ²_ν(0.975)) … RP(Σ̂)·√(ν/χ²_ν(0.025)).
+    """
+    d = np.asarray(deviation, np.float64)
+    n = d.shape[0]
+    if n < 2 or not np.all(np.isfinite(d)):
+        return NAN_INTERVAL
+    cov = np.cov(d, rowvar=False)
+    tr, tr2 = np.trace(cov), np.sum(cov * cov)
+    if tr <= 0:
+        return 0.0, 0.0
+    w, v = np.linalg.eigh(cov)
+    l = np.linalg.norm(_Z * np.sqrt(np.clip(w, 0.0, None)), axis=1)
+    mean_l = l.mean()
+    rp = mean_l + 3.0 * np.sqrt(max(tr - mean_l**2, 0.0))
+    nu = (n - 1) * tr**2 / tr2
+    lo = rp * np.sqrt(nu / stats.chi2.ppf(0.5 + LEVEL / 2, nu))
+    hi = rp * np.sqrt(nu / stats.chi2.ppf(0.5 - LEVEL / 2, nu))
+    return float(lo), float(hi)

@@ -14,8 +14,8 @@ from ._dwell import smoothed_speed
 from ._iso_ci import (
     N_BOOT,
     Interval,
-    bca_interval,
     pair,
+    studentized_interval,
     t_interval,
     three_s_interval,
     with_intervals,
@@ -233,17 +233,19 @@ def path_statistics(
         at_abc = np.nanmax(np.abs(np.nanmean(e, axis=0)), axis=0)
         rt_abc = np.nanmax(3.0 * np.nanstd(e, axis=0, ddof=1), axis=0)
         at_angle = float(np.nanmax(plane_angle(q0)))
-        ci["AT"] = bca_interval(lambda xb: np.nanmax(plane_at(xb), -1), [x], rng, n_boot)
-        ci["RT"] = bca_interval(lambda xb: np.nanmax(plane_rt(xb), -1), [x], rng, n_boot)
+        ci["AT"] = studentized_interval(lambda xb: np.nanmax(plane_at(xb), -1), [x], rng, n_boot)
+        ci["RT"] = studentized_interval(lambda xb: np.nanmax(plane_rt(xb), -1), [x], rng, n_boot)
         for k, axis in enumerate("abc"):
             ek = e[..., k]
-            ci[f"AT{axis}"] = bca_interval(
+            ci[f"AT{axis}"] = studentized_interval(
                 lambda eb: np.nanmax(np.abs(np.nanmean(eb, -2)), -1), [ek], rng, n_boot
             )
-            ci[f"RT{axis}"] = bca_interval(
+            ci[f"RT{axis}"] = studentized_interval(
                 lambda eb: np.nanmax(3.0 * np.nanstd(eb, -2, ddof=1), -1), [ek], rng, n_boot
             )
-        ci["AT_angle"] = bca_interval(lambda qb: np.nanmax(plane_angle(qb), -1), [q0], rng, n_boot)
+        ci["AT_angle"] = studentized_interval(
+            lambda qb: np.nanmax(plane_angle(qb), -1), [q0], rng, n_boot
+        )
     vm, vc = np.asarray(v_mean, np.float64), commanded_speed
     has_v = vm.size > 0 and vc > 0
     if has_v:

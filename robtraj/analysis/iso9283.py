@@ -31,17 +31,17 @@ from ._iso_ci import (
     NAN_INTERVAL,
     Interval,
     aligned_mean_quaternion,
-    bca_interval,
     fold_abs,
-    mean_plus_3s,
     pair,
+    rp_gaussian_interval,
     rp_stat,
+    studentized_interval,
     t_interval,
     three_s_interval,
     with_intervals,
 )
 from ._iso_path import CornerCharacteristics, PathCharacteristics, path_characteristics
-from ._quat import error_components, mean_quaternion, rotation_angle
+from ._quat import error_components, mean_quaternion, rotation_angle, to_rotation
 
 _APPROACH_RADIUS = 5e-3  # [m] stabilisation/overshoot look at the approach from here on
 _MIN_BAND = 1e-6  # [m] floor of the default limit band (RP = 0 for a perfect robot)
@@ -358,25 +358,22 @@ def pose_statistics(
     for k, axis in enumerate("abc"):
         ci[f"AP{axis}"] = pair(lo_abc[k], hi_abc[k])
         ci[f"RP{axis}"] = pair(rlo[k], rhi[k])
-    ci["AP"] = bca_interval(
+    ci["AP"] = studentized_interval(
         lambda xb: np.linalg.norm(xb.mean(axis=-2) - cp, axis=-1), [x], rng, n_boot
     )
-    ci["RP"] = bca_interval(rp_stat, [x], rng, n_boot)
+    ci["RP"] = rp_gaussian_interval(x - x.mean(axis=0))
 
     def ap_angle(qb):
         return rotation_angle(cq, aligned_mean_quaternion(qb, cq))
 
-    def rp_angle(qb):
-        m = aligned_mean_quaternion(qb, cq)
-        return mean_plus_3s(rotation_angle(m[..., None, :], qb))
-
-    ci["AP_angle"] = bca_interval(ap_angle, [q], rng, n_boot)
-    ci["RP_angle"] = bca_interval(rp_angle, [q], rng, n_boot)
+    ci["AP_angle"] = studentized_interval(ap_angle, [q], rng, n_boot)
+    # rotation vectors from the mean orientation: their lengths are the single angles
+    ci["RP_angle"] = rp_gaussian_interval((to_rotation(q) * to_rotation(q_mean).inv()).as_rotvec())
 
     groups = [x[approach == g] for g in np.unique(approach)]
     if len(groups) > 1:
         vap = float(_vap_stat(*groups))
-        ci["vAP"] = bca_interval(_vap_stat, groups, rng, n_boot)
+        ci["vAP"] = studentized_interval(_vap_stat, groups, rng, n_boot)
     else:
         vap = float("nan")
         ci["vAP"] = NAN_INTERVAL
@@ -394,9 +391,9 @@ def pose_statistics(
                 e.mean(axis=-2) - cp, axis=-1
             )
 
-        ci["dAP"] = fold_abs(*bca_interval(dap_signed, [early, late], rng, n_boot))
+        ci["dAP"] = fold_abs(*studentized_interval(dap_signed, [early, late], rng, n_boot))
         ci["dRP"] = fold_abs(
-            *bca_interval(lambda e, l: rp_stat(l) - rp_stat(e), [early, late], rng, n_boot)
+            *studentized_interval(lambda e, l: rp_stat(l) - rp_stat(e), [early, late], rng, n_boot)
         )
     else:
         dap = drp = float("nan")
