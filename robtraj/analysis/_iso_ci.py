@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 from jaxtyping import Float
-from scipy import stats
+from scipy import integrate, stats
 
 LEVEL = 0.95
 N_BOOT = 2000
@@ -40,6 +40,47 @@ def t_interval(x: np.ndarray) -> tuple[Any, Any]:
     half = stats.t.ppf(0.5 + LEVEL / 2, n - 1) * np.std(x, axis=0, ddof=1) / np.sqrt(n)
     m = x.mean(axis=0)
     return m - half, m + half
+
+
+def welch_interval(a: np.ndarray, b: np.ndarray) -> Interval:
+    """Welch t interval of mean(b) − mean(a) (unequal variances); NaN with < 2 each."""
+    na, nb = len(a), len(b)
+    if na < 2 or nb < 2:
+        return NAN_INTERVAL
+    va, vb = np.var(a, ddof=1) / na, np.var(b, ddof=1) / nb
+    se = np.sqrt(va + vb)
+    nu = (va + vb) ** 2 / (va**2 / (na - 1) + vb**2 / (nb - 1)) if se > 0 else 1.0
+    d = np.mean(b) - np.mean(a)
+    half = stats.t.ppf(0.5 + LEVEL / 2, nu) * se
+    return float(d - half), float(d + half)
+
+
+def length_interval(
+    a: np.ndarray, b: np.ndarray | None, rng: np.random.Generator, n_boot: int = N_BOOT
+) -> Interval:
+    """Interval of the length |mean(b) − mean(a)| of cycles `(n, 3)` (|mean(a)| when `b`
+    is None). Resolved lengths (≥ 3 standard errors) project the cycles on the mean's
+    direction, where the length is linear to first order: Student t (one group) or
+    Welch (two). Shorter ones, where the length's bias matters, take the studentised
+    bootstrap."""
+    u = a.mean(axis=0) if b is None else b.mean(axis=0) - a.mean(axis=0)
+    length = float(np.linalg.norm(u))
+    if b is None:
+        pa = a @ (u / length) if length > 0 else a[:, 0] * 0.0
+        se = np.std(pa, ddof=1) / np.sqrt(len(pa)) if len(pa) > 1 else np.nan
+        if length >= 3.0 * se:
+            return pair(*t_interval(pa))
+        return studentized_interval(
+            lambda ab: np.linalg.norm(ab.mean(axis=-2), axis=-1), [a], rng, n_boot
+        )
+    pa, pb = a @ (u / length), b @ (u / length)
+    se = np.sqrt(np.var(pa, ddof=1) / len(pa) + np.var(pb, ddof=1) / len(pb))
+    if length >= 3.0 * se:
+        return welch_interval(pa, pb)
+    return studentized_interval(
+        lambda ab, bb: np.linalg.norm(bb.mean(axis=-2) - ab.mean(axis=-2), axis=-1),
+        [a, b], rng, n_boot,
+    )  # fmt: skip
 
 
 def three_s_interval(x: np.ndarray) -> tuple[Any, Any]:
@@ -118,12 +159,6 @@ def pair(lo, hi) -> Interval:
 # batched statistics (cycles on axis −2 for points, −1 for scalars)
 
 
-def rp_stat(x: np.ndarray) -> Any:
-    """ISO 9283 RP = l̄ + 3·S_l of points `(…, n, 3)`."""
-    l = np.linalg.norm(x - x.mean(axis=-2, keepdims=True), axis=-1)
-    return l.mean(axis=-1) + 3.0 * np.std(l, axis=-1, ddof=1)
-
-
 def aligned_mean_quaternion(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Mean unit quaternion of `(…, n, 4)` after aligning signs with `ref` `(4,)`: the
     chordal mean to second order in the scatter, batched."""
@@ -150,30 +185,52 @@ def with_intervals(
     return out
 
 
-_Z = np.random.default_rng(9283).standard_normal((100_000, 3))  # fixed: deterministic moments
+def _mean_length(w: np.ndarray) -> float:
+    """E|z| for z ~ N(0, diag(w)): √r = ∫₀^∞ (1 − e^(−s·r)) s^(−3/2) ds / (2√π) and
+    E e^(−s|z|²) = Π (1 + 2 s wᵢ)^(−1/2); the integral in u = √s."""
+
+    def f(u: float) -> float:
+        return (1.0 - np.prod(1.0 + 2.0 * u * u * w) ** -0.5) / (u * u)
+
+    return float(integrate.quad(f, 0.0, np.inf)[0] / np.sqrt(np.pi))
 
 
 def rp_gaussian_interval(deviation: Float[np.ndarray, "cycles 3"]) -> Interval:
+    """95 % interval of RP from the cycles' `deviation` from their mean (`rp_gaussian`)."""
+    return rp_gaussian(deviation)[1:]
+
+
+def rp_difference_interval(
+    early: Float[np.ndarray, "cycles 3"], late: Float[np.ndarray, "cycles 3"]
+) -> Interval:
+    """Interval of RP(late) − RP(early) from the two Gaussian intervals by MOVER (Zou and
+    Donner 2008: the half-widths of the two one-sided limits add in quadrature)."""
+    r1, l1, u1 = rp_gaussian(late - late.mean(axis=0))
+    r2, l2, u2 = rp_gaussian(early - early.mean(axis=0))
+    d = r1 - r2
+    return d - np.hypot(r1 - l1, u2 - r2), d + np.hypot(u1 - r1, r2 - l2)
+
+
+def rp_gaussian(deviation: Float[np.ndarray, "cycles 3"]) -> tuple[float, float, float]:
     """Interval of RP = E l + 3·SD l, l = |z|, for cycles scattered as z ~ N(0, Σ).
 
     Σ is the sample covariance of `deviation` (vectors from the cycles' mean); RP(Σ)
     scales with √tr Σ, and tr Σ̂ is Satterthwaite-distributed as tr Σ·χ²_ν/ν with
-    ν = (n − 1)(tr Σ)²/tr Σ² (exact for isotropic scatter, ν = 3(n − 1)). Returns
-    RP(Σ̂)·√(ν/χ²_ν(0.975)) … RP(Σ̂)·√(ν/χ²_ν(0.025)).
+    ν = (n − 1)(tr Σ)²/tr Σ² (exact for isotropic scatter, ν = 3(n − 1); the plug-in
+    ν̂ errs low, i.e. wide, with few cycles: measured 96 % coverage at 10 cycles). Returns
+    RP(Σ̂) and the interval RP(Σ̂)·√(ν/χ²_ν(0.975)) … RP(Σ̂)·√(ν/χ²_ν(0.025)).
     """
     d = np.asarray(deviation, np.float64)
     n = d.shape[0]
     if n < 2 or not np.all(np.isfinite(d)):
-        return NAN_INTERVAL
+        return float("nan"), float("nan"), float("nan")
     cov = np.cov(d, rowvar=False)
     tr, tr2 = np.trace(cov), np.sum(cov * cov)
     if tr <= 0:
-        return 0.0, 0.0
-    w, v = np.linalg.eigh(cov)
-    l = np.linalg.norm(_Z * np.sqrt(np.clip(w, 0.0, None)), axis=1)
-    mean_l = l.mean()
+        return 0.0, 0.0, 0.0
+    mean_l = _mean_length(np.clip(np.linalg.eigvalsh(cov), 0.0, None))
     rp = mean_l + 3.0 * np.sqrt(max(tr - mean_l**2, 0.0))
     nu = (n - 1) * tr**2 / tr2
     lo = rp * np.sqrt(nu / stats.chi2.ppf(0.5 + LEVEL / 2, nu))
     hi = rp * np.sqrt(nu / stats.chi2.ppf(0.5 - LEVEL / 2, nu))
-    return float(lo), float(hi)
+    return float(rp), float(lo), float(hi)
