@@ -63,6 +63,8 @@ def length_interval(
     direction, where the length is linear to first order: Student t (one group) or
     Welch (two). Shorter ones, where the length's bias matters, take the studentised
     bootstrap."""
+    if len(a) < 2 or (b is not None and len(b) < 2):
+        return NAN_INTERVAL
     u = a.mean(axis=0) if b is None else b.mean(axis=0) - a.mean(axis=0)
     length = float(np.linalg.norm(u))
     if b is None:
@@ -135,7 +137,8 @@ def studentized_interval(
     if se == 0.0:
         return theta, theta
     boot = [s[rng.integers(0, s.shape[0], (n_boot, s.shape[0]))] for s in strata]
-    t = (stat(*boot) - theta) / _jackknife_se(stat, boot, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):  # resamples of one repeated cycle
+        t = (stat(*boot) - theta) / _jackknife_se(stat, boot, 1)
     t = t[np.isfinite(t)]
     if t.size < n_boot // 2:
         return NAN_INTERVAL
@@ -187,12 +190,20 @@ def with_intervals(
 
 def _mean_length(w: np.ndarray) -> float:
     """E|z| for z ~ N(0, diag(w)): √r = ∫₀^∞ (1 − e^(−s·r)) s^(−3/2) ds / (2√π) and
-    E e^(−s|z|²) = Π (1 + 2 s wᵢ)^(−1/2); the integral in u = √s."""
+    E e^(−s|z|²) = Π (1 + 2 s wᵢ)^(−1/2); the integral in u = √s, with w scaled to
+    max 1 (E|z| scales with √w)."""
+    top = float(np.max(w))
+    if top <= 0:
+        return 0.0
+    v = w / top
 
     def f(u: float) -> float:
-        return (1.0 - np.prod(1.0 + 2.0 * u * u * w) ** -0.5) / (u * u)
+        return (1.0 - np.prod(1.0 + 2.0 * u * u * v) ** -0.5) / (u * u)
 
-    return float(integrate.quad(f, 0.0, np.inf)[0] / np.sqrt(np.pi))
+    head = integrate.quad(f, 0.0, 1.0)[0]
+    # u > 1 as x = 1/u: f(u) du = (1 − Π x/√(x² + 2vᵢ)) dx
+    tail = integrate.quad(lambda x: 1.0 - np.prod(x / np.sqrt(x * x + 2.0 * v)), 0.0, 1.0)[0]
+    return float(np.sqrt(top) * (head + tail) / np.sqrt(np.pi))
 
 
 def rp_gaussian_interval(deviation: Float[np.ndarray, "cycles 3"]) -> Interval:

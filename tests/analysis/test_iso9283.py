@@ -309,3 +309,34 @@ def test_errors():
     t, p, qq, seg = trajectory(prog, pos, q, np.zeros_like(dwell))  # never stops
     with pytest.raises(robtraj.UserError, match="no ISO 9283 cycles"):
         iso9283(prog, t, p, qq, segment=seg)
+
+
+def test_cli_table_prints_intervals_and_warns_below_30_cycles(cube, capsys):
+    from robtraj.cli._iso9283 import print_table
+
+    res = cube[-1]
+    print_table(res)
+    out, err = capsys.readouterr()
+    assert f"pose P1: {CYCLES} cycles" in out
+    # every characteristic with an interval in the JSON is printed with it
+    ap = [line for line in out.splitlines() if line.split()[:1] == ["AP"]]
+    lo, hi = res.poses[0].to_json()["AP_mm_ci95"]
+    assert ap and f"[{lo:.4g}, {hi:.4g}]" in ap[0]
+    n_ci = sum(k.endswith("_ci95") for block in res.to_json().values()
+               for d in block.values() for k in d)  # fmt: skip
+    assert out.count("95 % CI") == n_ci
+    # the pose test has the standard's 30 cycles, the path test 6: only the paths warn
+    assert "warning: fewer than the standard's 30 cycles" in err
+    assert f"({PATH_CYCLES})" in err and "P1 (" not in err
+
+
+def test_json_intervals_next_to_values(cube):
+    out = json.loads(json.dumps(cube[-1].to_json()))
+    p1 = out["poses"]["P1"]
+    for key in ["AP_mm", "RP_mm", "APx_mm", "RPa_deg", "AP_angle_deg", "RP_angle_deg"]:
+        lo, hi = p1[f"{key}_ci95"]
+        assert lo <= p1[key] <= hi or key in ("RP_mm", "RP_angle_deg"), key
+        assert lo < hi
+    assert p1["t_stab_max_s_ci95"] is None  # a maximum over cycles has no interval
+    path = next(iter(out["paths"].values()))
+    assert path["AV_percent_ci95"] is not None and path["FV_mm_per_s_ci95"] is None
