@@ -245,3 +245,13 @@ def rp_gaussian(deviation: Float[np.ndarray, "cycles 3"]) -> tuple[float, float,
     lo = rp * np.sqrt(nu / stats.chi2.ppf(0.5 + LEVEL / 2, nu))
     hi = rp * np.sqrt(nu / stats.chi2.ppf(0.5 - LEVEL / 2, nu))
     return float(rp), float(lo), float(hi)
+
+
+def batch_rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation angle [rad] of `a⁻¹ ⊗ b` for unit quaternions (w, x, y, z), in NumPy:
+    `2·atan2(|v|, |w|)` as `_quat.rotation_angle`, without compiling a JAX kernel for
+    every bootstrap shape."""
+    a, b = np.broadcast_arrays(a, b)
+    w = np.sum(a * b, axis=-1)
+    v = a[..., :1] * b[..., 1:] - b[..., :1] * a[..., 1:] - np.cross(a[..., 1:], b[..., 1:])
+    return 2.0 * np.arctan2(np.linalg.norm(v, axis=-1), np.abs(w))

@@ -14,13 +14,14 @@ from ._dwell import smoothed_speed
 from ._iso_ci import (
     N_BOOT,
     Interval,
+    batch_rotation_angle,
     pair,
     studentized_interval,
     t_interval,
     three_s_interval,
     with_intervals,
 )
-from ._quat import error_components, rotation_angle, slerp
+from ._quat import error_components, slerp
 from .deviation import commanded_path, path_deviation
 
 _MAX_REFERENCE_SAMPLES = 2_000_000
@@ -222,7 +223,7 @@ def path_statistics(
 
     def plane_angle(qb):
         s = np.where(np.sum(qb * qc, axis=-1, keepdims=True) < 0, -qb, qb).sum(axis=-3)
-        return rotation_angle(qc, s / np.linalg.norm(s, axis=-1, keepdims=True))
+        return batch_rotation_angle(qc, s / np.linalg.norm(s, axis=-1, keepdims=True))
 
     at_all = np.full(use.size, np.nan)
     rt_all = np.full(use.size, np.nan)

@@ -47,13 +47,14 @@ def print_table(res) -> None:
             if n is not None and n < ISO_CYCLES:
                 few.append(f"{name} ({n})")
             for key, value in d.items():
-                if f"{key}_ci95" not in d or value is None:
+                if f"{key}_ci95" not in d:
                     continue
                 suffix = next((k for k in _UNITS if key.endswith(k)), "")
                 label, unit = key[: len(key) - len(suffix)], _UNITS.get(suffix, "")
                 ci = d[f"{key}_ci95"]
                 band = f"[{ci[0]:.4g}, {ci[1]:.4g}]" if ci is not None else "(no interval)"
-                print(f"  {label:<14} {value:>11.4g} {unit:<4} 95 % CI {band}")
+                shown = "n/a" if value is None else f"{value:.4g}"
+                print(f"  {label:<14} {shown:>11} {unit:<4} 95 % CI {band}")
     if few:
         print(
             f"robtraj: warning: fewer than the standard's {ISO_CYCLES} cycles: {', '.join(few)}; "

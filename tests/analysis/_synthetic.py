@@ -89,21 +89,22 @@ def trajectory(
             s = u + ripple[0] / (w * dur) * np.sin(w * u * dur)
         ts.append(t0 + u * dur)
         ps.append(pos[j - 1] + s[:, None] * (pos[j] - pos[j - 1]))
-        qs.append(slerp(np.broadcast_to(q[j - 1], (k, 4)), np.broadcast_to(q[j], (k, 4)), s))
+        qs.append((np.broadcast_to(q[j - 1], (k, 4)), np.broadcast_to(q[j], (k, 4)), s))
         segs.append(np.full(k, j))
         t0 += dur
         if dwell[j]:
             m = int(dwell_time * rate)
             ts.append(t0 + np.arange(m) * dt)
             ps.append(np.broadcast_to(pos[j], (m, 3)))
-            qs.append(np.broadcast_to(q[j], (m, 4)))
+            qs.append((np.broadcast_to(q[j], (m, 4)), np.broadcast_to(q[j], (m, 4)), np.zeros(m)))
             segs.append(np.full(m, j))
             t0 += m * dt
     t = np.concatenate(ts)
     p = np.concatenate(ps)
     if noise:
         p = p + rng.normal(0.0, noise, p.shape)
-    return t, p, np.concatenate(qs), np.concatenate(segs)
+    q0, q1, frac = (np.concatenate(v) for v in zip(*qs))
+    return t, p, slerp(q0, q1, frac), np.concatenate(segs)  # one call: one compiled shape
 
 
 def round_corners(prog: Program, t, p, seg, radius: float) -> np.ndarray:
