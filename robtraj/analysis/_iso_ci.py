@@ -85,7 +85,7 @@ def length_interval(
     )  # fmt: skip
 
 
-def three_s_interval(x: np.ndarray) -> tuple[Any, Any]:
+def three_s_interval(x: np.ndarray, level: float = LEVEL) -> tuple[Any, Any]:
     """χ² interval of 3·σ from the sample standard deviation of `x` over axis 0."""
     x = np.asarray(x, np.float64)
     n = x.shape[0]
@@ -93,8 +93,8 @@ def three_s_interval(x: np.ndarray) -> tuple[Any, Any]:
         nan = np.full(x.shape[1:], np.nan)
         return nan, nan
     s3 = 3.0 * np.std(x, axis=0, ddof=1)
-    lo = s3 * np.sqrt((n - 1) / stats.chi2.ppf(0.5 + LEVEL / 2, n - 1))
-    hi = s3 * np.sqrt((n - 1) / stats.chi2.ppf(0.5 - LEVEL / 2, n - 1))
+    lo = s3 * np.sqrt((n - 1) / stats.chi2.ppf(0.5 + level / 2, n - 1))
+    hi = s3 * np.sqrt((n - 1) / stats.chi2.ppf(0.5 - level / 2, n - 1))
     return lo, hi
 
 
@@ -206,9 +206,20 @@ def _mean_length(w: np.ndarray) -> float:
     return float(np.sqrt(top) * (head + tail) / np.sqrt(np.pi))
 
 
-def rp_gaussian_interval(deviation: Float[np.ndarray, "cycles 3"]) -> Interval:
-    """95 % interval of RP from the cycles' `deviation` from their mean (`rp_gaussian`)."""
-    return rp_gaussian(deviation)[1:]
+def rp_gaussian_interval(
+    deviation: Float[np.ndarray, "cycles 3"], level: float = LEVEL
+) -> Interval:
+    """Interval of RP from the cycles' `deviation` from their mean (`rp_gaussian`)."""
+    return rp_gaussian(deviation, level)[1:]
+
+
+def max_interval(intervals: Sequence[Interval]) -> Interval:
+    """Interval of max_k θ_k from simultaneous intervals of the θ_k (each at level
+    1 − (1 − LEVEL)/K, Bonferroni): if every θ_k lies in its interval, the maximum lies
+    in [max lo_k, max hi_k], so the coverage is at least LEVEL. The maximum of
+    estimates is biased up, so a bootstrap of it misses an equal-valued truth."""
+    iv = np.array([i for i in intervals if np.all(np.isfinite(i))])
+    return (float(iv[:, 0].max()), float(iv[:, 1].max())) if iv.size else NAN_INTERVAL
 
 
 def rp_difference_interval(
@@ -222,7 +233,9 @@ def rp_difference_interval(
     return d - np.hypot(r1 - l1, u2 - r2), d + np.hypot(u1 - r1, r2 - l2)
 
 
-def rp_gaussian(deviation: Float[np.ndarray, "cycles 3"]) -> tuple[float, float, float]:
+def rp_gaussian(
+    deviation: Float[np.ndarray, "cycles 3"], level: float = LEVEL
+) -> tuple[float, float, float]:
     """Interval of RP = E l + 3·SD l, l = |z|, for cycles scattered as z ~ N(0, Σ).
 
     Σ is the sample covariance of `deviation` (vectors from the cycles' mean); RP(Σ)
@@ -242,8 +255,8 @@ def rp_gaussian(deviation: Float[np.ndarray, "cycles 3"]) -> tuple[float, float,
     mean_l = _mean_length(np.clip(np.linalg.eigvalsh(cov), 0.0, None))
     rp = mean_l + 3.0 * np.sqrt(max(tr - mean_l**2, 0.0))
     nu = (n - 1) * tr**2 / tr2
-    lo = rp * np.sqrt(nu / stats.chi2.ppf(0.5 + LEVEL / 2, nu))
-    hi = rp * np.sqrt(nu / stats.chi2.ppf(0.5 - LEVEL / 2, nu))
+    lo = rp * np.sqrt(nu / stats.chi2.ppf(0.5 + level / 2, nu))
+    hi = rp * np.sqrt(nu / stats.chi2.ppf(0.5 - level / 2, nu))
     return float(rp), float(lo), float(hi)
 
 

@@ -12,10 +12,13 @@ from jaxtyping import Float
 from ..recording import Program
 from ._dwell import smoothed_speed
 from ._iso_ci import (
+    LEVEL,
     N_BOOT,
     Interval,
     batch_rotation_angle,
+    max_interval,
     pair,
+    rp_gaussian_interval,
     studentized_interval,
     t_interval,
     three_s_interval,
@@ -38,9 +41,10 @@ class PathCharacteristics:
     attained and the commanded orientation [rad]. Velocity over the `steady` part of the
     move: `AV` = (v̄ − v_c)/v_c, `RV` = 3·S_v̄/v_c (fractions), `FV` = max over passes of
     (max − min speed) [m/s]. `plane_AT`, `plane_RT` `(n_planes,)` per plane. `ci`: 95 %
-    intervals keyed by the JSON names without unit, in SI (fractions for AV, RV): BCa
-    bootstrap over passes for the maxima over planes, Student t / χ² for AV / RV; none
-    for FV (a maximum over passes).
+    intervals keyed by the JSON names without unit, in SI (fractions for AV, RV):
+    studentised bootstrap over passes for AT (position, a/b/c, angle), simultaneous
+    per-plane Gaussian / χ² intervals for RT (`max_interval`), Student t / χ² for
+    AV / RV; none for FV (a maximum over passes).
     """
 
     name: str
@@ -235,15 +239,24 @@ def path_statistics(
         rt_abc = np.nanmax(3.0 * np.nanstd(e, axis=0, ddof=1), axis=0)
         at_angle = float(np.nanmax(plane_angle(q0)))
         ci["AT"] = studentized_interval(lambda xb: np.nanmax(plane_at(xb), -1), [x], rng, n_boot)
-        ci["RT"] = studentized_interval(lambda xb: np.nanmax(plane_rt(xb), -1), [x], rng, n_boot)
+        # RT: a maximum over planes of equal-valued RTs is biased up; simultaneous
+        # per-plane intervals bound it instead (`max_interval`)
+        k_planes = x.shape[1]
+        simultaneous = 1.0 - (1.0 - LEVEL) / max(k_planes, 1)
+        ok_p = np.all(np.isfinite(x), axis=-1)
+        ci["RT"] = max_interval([
+            rp_gaussian_interval(x[ok_p[:, i], i] - x[ok_p[:, i], i].mean(0), simultaneous)
+            for i in range(k_planes)
+        ])  # fmt: skip
         for k, axis in enumerate("abc"):
             ek = e[..., k]
             ci[f"AT{axis}"] = studentized_interval(
                 lambda eb: np.nanmax(np.abs(np.nanmean(eb, -2)), -1), [ek], rng, n_boot
             )
-            ci[f"RT{axis}"] = studentized_interval(
-                lambda eb: np.nanmax(3.0 * np.nanstd(eb, -2, ddof=1), -1), [ek], rng, n_boot
-            )
+            ci[f"RT{axis}"] = max_interval([
+                pair(*three_s_interval(ek[np.isfinite(ek[:, i]), i], simultaneous))
+                for i in range(k_planes)
+            ])  # fmt: skip
         ci["AT_angle"] = studentized_interval(
             lambda qb: np.nanmax(plane_angle(qb), -1), [q0], rng, n_boot
         )

@@ -122,10 +122,11 @@ def _path_run(seed: int, passes: int, n_boot: int) -> dict[str, bool]:
 
 
 @pytest.mark.exhaustive
-def test_path_interval_coverage_measured():
-    """AT and RT are maxima over planes: their intervals are reported with the coverage
-    this measures (the maximum over planes biases them up); AV/RV are exact."""
-    hits = [_path_run(5000 + r, 10, 500) for r in range(200)]
+def test_path_interval_coverage():
+    """1000 runs (SE 0.7 %, ± 2 % ≈ 3σ). AT, AV, RV: 95 ± 2 %. RT is a maximum over
+    planes of equal-valued truths here; its simultaneous-interval bound is conservative
+    by construction (at least 95 %)."""
+    hits = [_path_run(5000 + r, 10, 300) for r in range(1000)]
     cov = {k: float(np.mean([h[k] for h in hits])) for k in hits[0]}
-    print(cov)
-    assert 0.92 <= cov["AV"] <= 0.98 and 0.92 <= cov["RV"] <= 0.98, cov
+    assert all(0.93 <= cov[k] <= 0.97 for k in ("AT", "AV", "RV")), cov
+    assert cov["RT"] >= 0.93, cov
