@@ -3,13 +3,28 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any
 
 import numpy as np
+from jaxtyping import Float
 
 from ..recording import Program
 from ._dwell import smoothed_speed
-from ._quat import error_components, mean_quaternion, rotation_angle, slerp
+from ._iso_ci import (
+    LEVEL,
+    N_BOOT,
+    Interval,
+    batch_rotation_angle,
+    max_interval,
+    pair,
+    rp_gaussian_interval,
+    studentized_interval,
+    t_interval,
+    three_s_interval,
+    with_intervals,
+)
+from ._quat import error_components, slerp
 from .deviation import commanded_path, path_deviation
 
 _MAX_REFERENCE_SAMPLES = 2_000_000
@@ -25,7 +40,11 @@ class PathCharacteristics:
     |mean error| and of 3·S), `AT_angle` the largest single angle between the mean
     attained and the commanded orientation [rad]. Velocity over the `steady` part of the
     move: `AV` = (v̄ − v_c)/v_c, `RV` = 3·S_v̄/v_c (fractions), `FV` = max over passes of
-    (max − min speed) [m/s]. `plane_AT`, `plane_RT` `(n_planes,)` per plane.
+    (max − min speed) [m/s]. `plane_AT`, `plane_RT` `(n_planes,)` per plane. `ci`: 95 %
+    intervals keyed by the JSON names without unit, in SI (fractions for AV, RV):
+    studentised bootstrap over passes for AT (position, a/b/c, angle), simultaneous
+    per-plane Gaussian / χ² intervals for RT (`max_interval`), Student t / χ² for
+    AV / RV; none for FV (a maximum over passes).
     """
 
     name: str
@@ -44,34 +63,32 @@ class PathCharacteristics:
     plane_fraction: np.ndarray
     plane_AT: np.ndarray
     plane_RT: np.ndarray
+    ci: dict[str, Interval] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         mm, deg = 1e3, float(np.degrees(1.0))
-        return {
+        rows = [
+            ("AT_mm", self.AT, mm), ("RT_mm", self.RT, mm),
+            ("ATa_deg", self.AT_abc[0], deg), ("ATb_deg", self.AT_abc[1], deg),
+            ("ATc_deg", self.AT_abc[2], deg), ("AT_angle_deg", self.AT_angle, deg),
+            ("RTa_deg", self.RT_abc[0], deg), ("RTb_deg", self.RT_abc[1], deg),
+            ("RTc_deg", self.RT_abc[2], deg), ("v_mean_mm_per_s", self.mean_speed, mm),
+            ("AV_percent", self.AV, 100.0), ("RV_percent", self.RV, 100.0),
+            ("FV_mm_per_s", self.FV, mm),
+        ]  # fmt: skip
+        head = {
             "n_cycles": self.n_cycles,
             "length_mm": self.length * mm,
             "vc_mm_per_s": self.commanded_speed * mm,
-            "AT_mm": self.AT * mm,
-            "RT_mm": self.RT * mm,
-            "ATa_deg": self.AT_abc[0] * deg,
-            "ATb_deg": self.AT_abc[1] * deg,
-            "ATc_deg": self.AT_abc[2] * deg,
-            "AT_angle_deg": self.AT_angle * deg,
-            "RTa_deg": self.RT_abc[0] * deg,
-            "RTb_deg": self.RT_abc[1] * deg,
-            "RTc_deg": self.RT_abc[2] * deg,
-            "v_mean_mm_per_s": self.mean_speed * mm,
-            "AV_percent": self.AV * 100,
-            "RV_percent": self.RV * 100,
-            "FV_mm_per_s": self.FV * mm,
         }
+        return head | with_intervals(rows, self.ci, {})
 
 
 @dataclasses.dataclass(frozen=True)
 class CornerCharacteristics:
     """Corner round-off `CR` (closest approach of the measured path to the corner) and
     corner overshoot `CO` (largest deviation from the second leg in its first half) [m],
-    mean and max over `n` passes."""
+    mean and max over `n` passes; `ci`: Student-t 95 % intervals of the means."""
 
     name: str
     n: int
@@ -79,10 +96,12 @@ class CornerCharacteristics:
     CR_max: float
     CO_mean: float
     CO_max: float
+    ci: dict[str, Interval] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        return {"n": self.n, "CR_mean_mm": self.CR_mean * 1e3, "CR_max_mm": self.CR_max * 1e3,
-                "CO_mean_mm": self.CO_mean * 1e3, "CO_max_mm": self.CO_max * 1e3}  # fmt: skip
+        rows = [("CR_mean_mm", self.CR_mean, 1e3), ("CR_max_mm", self.CR_max, 1e3),
+                ("CO_mean_mm", self.CO_mean, 1e3), ("CO_max_mm", self.CO_max, 1e3)]  # fmt: skip
+        return {"n": self.n} | with_intervals(rows, self.ci, {})
 
 
 def path_characteristics(
@@ -99,6 +118,8 @@ def path_characteristics(
     steady: tuple[float, float],
     corner_angle: float,
     speed_window: float,
+    rng: np.random.Generator,
+    n_boot: int = N_BOOT,
 ) -> tuple[list[PathCharacteristics], list[CornerCharacteristics]]:
     tp = np.asarray(program.targets.position, np.float64)
     tq = np.asarray(program.targets.quaternion_wxyz, np.float64)
@@ -157,47 +178,108 @@ def path_characteristics(
             np.broadcast_to(tq[j0], (n_planes, 4)),
             planes,
         )
-        valid = np.all(np.isfinite(x), axis=2)  # (occ, planes)
-        use = valid.sum(axis=0) >= 2
-        bary = np.full((n_planes, 3), np.nan)
-        at = np.full(n_planes, np.nan)
-        rt = np.full(n_planes, np.nan)
-        at_abc = np.full((n_planes, 3), np.nan)
-        rt_abc = np.full((n_planes, 3), np.nan)
-        at_ang = np.full(n_planes, np.nan)
-        for i in np.flatnonzero(use):  # per plane (tens), vectorised over passes
-            xi, qi = x[valid[:, i], i], q[valid[:, i], i]
-            bary[i] = xi.mean(axis=0)
-            at[i] = np.linalg.norm(bary[i] - c[i])
-            l = np.linalg.norm(xi - bary[i], axis=1)
-            rt[i] = l.mean() + 3.0 * np.std(l, ddof=1)
-            e = error_components(np.broadcast_to(qc[i], qi.shape), qi)
-            at_abc[i] = np.abs(e.mean(axis=0))
-            rt_abc[i] = 3.0 * np.std(e, axis=0, ddof=1)
-            at_ang[i] = rotation_angle(qc[i], mean_quaternion(qi))
         vc = float(program.speed[j0])
-        vm = np.array(v_mean)
+        values, ci = path_statistics(x, q, c, qc, np.array(v_mean), vc, rng, n_boot)
         paths.append(
             PathCharacteristics(
                 name=f"{names[a]}->{names[b]}",
-                n_cycles=int(valid.any(axis=1).sum()),
                 length=float(length[j0]),
                 commanded_speed=vc,
-                AT=_nanmax(at),
-                RT=_nanmax(rt),
-                AT_abc=_nanmax(at_abc, axis=0),
-                RT_abc=_nanmax(rt_abc, axis=0),
-                AT_angle=_nanmax(at_ang),
-                mean_speed=float(vm.mean()) if vm.size else float("nan"),
-                AV=float((vm.mean() - vc) / vc) if vm.size and vc > 0 else float("nan"),
-                RV=float(3.0 * np.std(vm, ddof=1) / vc) if vm.size > 1 and vc > 0 else float("nan"),
                 FV=float(max(v_fluct)) if v_fluct else float("nan"),
                 plane_fraction=planes,
-                plane_AT=at,
-                plane_RT=rt,
+                ci=ci,
+                **values,
             )
         )
     return paths, _corners(moves, cluster, names, tp, position, dev, frac_all, corner_angle)
+
+
+def path_statistics(
+    x: Float[np.ndarray, "passes planes 3"],
+    q: Float[np.ndarray, "passes planes 4"],
+    commanded: Float[np.ndarray, "planes 3"],
+    commanded_quaternion_wxyz: Float[np.ndarray, "planes 4"],
+    v_mean: Float[np.ndarray, " passes"],
+    commanded_speed: float,
+    rng: np.random.Generator | None = None,
+    n_boot: int = N_BOOT,
+) -> tuple[dict[str, Any], dict[str, Interval]]:
+    """AT/RT (position, a/b/c, single angle) and AV/RV of one path from the attained
+    poses where each pass crosses the normal planes (NaN where a pass misses a plane;
+    planes crossed by fewer than two passes are left out) and the mean steady speed of
+    each pass [m/s]. Returns the `PathCharacteristics` fields and their 95 % intervals.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    valid = np.all(np.isfinite(x), axis=2)  # (passes, planes)
+    use = valid.sum(axis=0) >= 2
+    x, q, c, qc = x[:, use], q[:, use], commanded[use], commanded_quaternion_wxyz[use]
+    e = np.full(x.shape, np.nan)
+    ok = np.all(np.isfinite(q), axis=-1)
+    e[ok] = error_components(np.broadcast_to(qc, q.shape)[ok], q[ok])
+    q0 = np.where(ok[..., None], q, 0.0)  # missing passes add nothing to the quaternion sum
+
+    def plane_at(xb):
+        return np.linalg.norm(np.nanmean(xb, axis=-3) - c, axis=-1)
+
+    def plane_rt(xb):
+        l = np.linalg.norm(xb - np.nanmean(xb, axis=-3, keepdims=True), axis=-1)
+        return np.nanmean(l, axis=-2) + 3.0 * np.nanstd(l, axis=-2, ddof=1)
+
+    def plane_angle(qb):
+        s = np.where(np.sum(qb * qc, axis=-1, keepdims=True) < 0, -qb, qb).sum(axis=-3)
+        return batch_rotation_angle(qc, s / np.linalg.norm(s, axis=-1, keepdims=True))
+
+    at_all = np.full(use.size, np.nan)
+    rt_all = np.full(use.size, np.nan)
+    ci: dict[str, Interval] = {}
+    with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)  # a resample can miss a plane
+        at_all[use], rt_all[use] = plane_at(x), plane_rt(x)
+        at_abc = np.nanmax(np.abs(np.nanmean(e, axis=0)), axis=0)
+        rt_abc = np.nanmax(3.0 * np.nanstd(e, axis=0, ddof=1), axis=0)
+        at_angle = float(np.nanmax(plane_angle(q0)))
+        ci["AT"] = studentized_interval(lambda xb: np.nanmax(plane_at(xb), -1), [x], rng, n_boot)
+        # RT: a maximum over planes of equal-valued RTs is biased up; simultaneous
+        # per-plane intervals bound it instead (`max_interval`)
+        k_planes = x.shape[1]
+        simultaneous = 1.0 - (1.0 - LEVEL) / max(k_planes, 1)
+        ok_p = np.all(np.isfinite(x), axis=-1)
+        ci["RT"] = max_interval([
+            rp_gaussian_interval(x[ok_p[:, i], i] - x[ok_p[:, i], i].mean(0), simultaneous)
+            for i in range(k_planes)
+        ])  # fmt: skip
+        for k, axis in enumerate("abc"):
+            ek = e[..., k]
+            ci[f"AT{axis}"] = studentized_interval(
+                lambda eb: np.nanmax(np.abs(np.nanmean(eb, -2)), -1), [ek], rng, n_boot
+            )
+            ci[f"RT{axis}"] = max_interval([
+                pair(*three_s_interval(ek[np.isfinite(ek[:, i]), i], simultaneous))
+                for i in range(k_planes)
+            ])  # fmt: skip
+        ci["AT_angle"] = studentized_interval(
+            lambda qb: np.nanmax(plane_angle(qb), -1), [q0], rng, n_boot
+        )
+    vm, vc = np.asarray(v_mean, np.float64), commanded_speed
+    has_v = vm.size > 0 and vc > 0
+    if has_v:
+        ci["v_mean"] = pair(*t_interval(vm))
+        ci["AV"] = pair(*t_interval(vm / vc - 1.0))
+        ci["RV"] = pair(*three_s_interval(vm / vc))
+    values = {
+        "n_cycles": int(valid.any(axis=1).sum()),
+        "AT": _nanmax(at_all),
+        "RT": _nanmax(rt_all),
+        "AT_abc": at_abc,
+        "RT_abc": rt_abc,
+        "AT_angle": at_angle,
+        "mean_speed": float(vm.mean()) if vm.size else float("nan"),
+        "AV": float((vm.mean() - vc) / vc) if has_v else float("nan"),
+        "RV": float(3.0 * np.std(vm, ddof=1) / vc) if has_v and vm.size > 1 else float("nan"),
+        "plane_AT": at_all,
+        "plane_RT": rt_all,
+    }
+    return values, ci
 
 
 def _nanmax(v: np.ndarray, axis: int | None = None) -> Any:
@@ -237,6 +319,7 @@ def _corners(moves, cluster, names, tp, position, dev, frac_all, corner_angle):
         if len(v) < 1:
             continue
         cr, co = np.array(v).T
+        ci = {"CR_mean": pair(*t_interval(cr)), "CO_mean": pair(*t_interval(co))}
         out.append(CornerCharacteristics(names[c], len(v), float(cr.mean()), float(cr.max()),
-                                         float(co.mean()), float(co.max())))  # fmt: skip
+                                         float(co.mean()), float(co.max()), ci))  # fmt: skip
     return out

@@ -26,8 +26,22 @@ from jaxtyping import Float
 from .._errors import UserError
 from ..recording import Program
 from ._dwell import Dwell, cluster_targets, find_dwells
+from ._iso_ci import (
+    N_BOOT,
+    NAN_INTERVAL,
+    Interval,
+    fold_abs,
+    length_interval,
+    pair,
+    rp_difference_interval,
+    rp_gaussian_interval,
+    t_interval,
+    three_s_interval,
+    welch_interval,
+    with_intervals,
+)
 from ._iso_path import CornerCharacteristics, PathCharacteristics, path_characteristics
-from ._quat import error_components, mean_quaternion, rotation_angle
+from ._quat import error_components, mean_quaternion, rotation_angle, to_rotation
 
 _APPROACH_RADIUS = 5e-3  # [m] stabilisation/overshoot look at the approach from here on
 _MIN_BAND = 1e-6  # [m] floor of the default limit band (RP = 0 for a perfect robot)
@@ -52,7 +66,10 @@ class PoseCharacteristics:
     attained pose (time from first entering the limit band until staying in it, and the
     largest distance after first entering it, 0 if it never leaves). `dAP`, `dRP`: drift,
     |AP(late) − AP(early)| and |RP(late) − RP(early)| over the first and last
-    `drift_cycles` cycles (NaN with fewer than 4 cycles).
+    `drift_cycles` cycles (NaN with fewer than 4 cycles). `ci`: 95 % intervals by
+    characteristic (see `pose_statistics`); maxima over cycles have none (a sample
+    extreme estimates no fixed parameter). `approach` `(n_cycles,)`: the pose each
+    attainment came from.
     """
 
     name: str
@@ -61,6 +78,7 @@ class PoseCharacteristics:
     attained_position: np.ndarray
     attained_quaternion_wxyz: np.ndarray
     attained_time: np.ndarray
+    approach: np.ndarray
     n_cycles: int
     AP_xyz: np.ndarray
     AP: float
@@ -76,49 +94,42 @@ class PoseCharacteristics:
     overshoot_max: float
     dAP: float
     dRP: float
+    ci: dict[str, Interval] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         mm, deg = 1e3, float(np.degrees(1.0))
-        return {
-            "n_cycles": self.n_cycles,
-            "commanded_mm": (self.commanded_position * mm).tolist(),
-            "APx_mm": self.AP_xyz[0] * mm,
-            "APy_mm": self.AP_xyz[1] * mm,
-            "APz_mm": self.AP_xyz[2] * mm,
-            "AP_mm": self.AP * mm,
-            "RP_mm": self.RP * mm,
-            "APa_deg": self.AP_abc[0] * deg,
-            "APb_deg": self.AP_abc[1] * deg,
-            "APc_deg": self.AP_abc[2] * deg,
-            "AP_angle_deg": self.AP_angle * deg,
-            "RPa_deg": self.RP_abc[0] * deg,
-            "RPb_deg": self.RP_abc[1] * deg,
-            "RPc_deg": self.RP_abc[2] * deg,
-            "RP_angle_deg": self.RP_angle * deg,
-            "vAP_mm": self.vAP * mm,
-            "t_stab_mean_s": self.t_stab_mean,
-            "t_stab_max_s": self.t_stab_max,
-            "OV_mean_mm": self.overshoot_mean * mm,
-            "OV_max_mm": self.overshoot_max * mm,
-            "dAP_mm": self.dAP * mm,
-            "dRP_mm": self.dRP * mm,
-        }
+        rows = [
+            ("APx_mm", self.AP_xyz[0], mm), ("APy_mm", self.AP_xyz[1], mm),
+            ("APz_mm", self.AP_xyz[2], mm), ("AP_mm", self.AP, mm), ("RP_mm", self.RP, mm),
+            ("APa_deg", self.AP_abc[0], deg), ("APb_deg", self.AP_abc[1], deg),
+            ("APc_deg", self.AP_abc[2], deg), ("AP_angle_deg", self.AP_angle, deg),
+            ("RPa_deg", self.RP_abc[0], deg), ("RPb_deg", self.RP_abc[1], deg),
+            ("RPc_deg", self.RP_abc[2], deg), ("RP_angle_deg", self.RP_angle, deg),
+            ("vAP_mm", self.vAP, mm), ("t_stab_mean_s", self.t_stab_mean, 1.0),
+            ("t_stab_max_s", self.t_stab_max, 1.0), ("OV_mean_mm", self.overshoot_mean, mm),
+            ("OV_max_mm", self.overshoot_max, mm), ("dAP_mm", self.dAP, mm),
+            ("dRP_mm", self.dRP, mm),
+        ]  # fmt: skip
+        out = {"n_cycles": self.n_cycles, "commanded_mm": (self.commanded_position * mm).tolist()}
+        return out | with_intervals(rows, self.ci, {"OV_mean": "overshoot_mean"})
 
 
 @dataclasses.dataclass(frozen=True)
 class DistanceCharacteristics:
     """Distance accuracy `AD` = D̄ − D_c and repeatability `RD` = 3·S_D [m] between two test
-    poses attained one after the other, over `n` pairs."""
+    poses attained one after the other, over `n` pairs; `ci`: their 95 % intervals
+    (Student t and χ²)."""
 
     name: str
     commanded: float
     AD: float
     RD: float
     n: int
+    ci: dict[str, Interval] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        return {"n": self.n, "Dc_mm": self.commanded * 1e3, "AD_mm": self.AD * 1e3,
-                "RD_mm": self.RD * 1e3}  # fmt: skip
+        rows = [("AD_mm", self.AD, 1e3), ("RD_mm", self.RD, 1e3)]
+        return {"n": self.n, "Dc_mm": self.commanded * 1e3} | with_intervals(rows, self.ci, {})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,6 +181,8 @@ def iso9283(
     n_planes: int = 20,
     steady: tuple[float, float] = (0.25, 0.75),
     corner_angle: float = np.radians(30.0),
+    n_boot: int = N_BOOT,
+    seed: int = 0,
 ) -> Iso9283Result:
     """ISO 9283 pose, distance, path, corner and velocity characteristics.
 
@@ -195,6 +208,7 @@ def iso9283(
     - `n_planes`: normal planes per move for AT/RT; `steady`: fraction of each move used
       for the velocity characteristics; `corner_angle` [rad]: smallest change of
       direction that makes a corner.
+    - `n_boot`, `seed`: bootstrap resamples and seed of the 95 % intervals (`_iso_ci`).
 
     **Returns:** an `Iso9283Result`. Raises `UserError` for a program with fewer than two
     targets or when no test pose is attained at least twice and no path move repeats.
@@ -230,15 +244,17 @@ def iso9283(
     if pose_names:
         names.update(pose_names)
 
+    rng = np.random.default_rng(seed)
     poses = [
-        _pose(names[c], c, by_pose[c], cluster, tp, tq, time, position, dwells, band, drift_cycles)
+        _pose(names[c], c, by_pose[c], cluster, tp, tq, time, position, dwells, band,
+              drift_cycles, rng, n_boot)
         for c in test
-    ]
+    ]  # fmt: skip
     distances = _distances(dwells, cluster, set(test), names, tp)
     paths, corners = path_characteristics(
         program, cluster, set(test), names, time, position, quaternion_wxyz,
         spacing=spacing, n_planes=n_planes, steady=steady, corner_angle=corner_angle,
-        speed_window=speed_window,
+        speed_window=speed_window, rng=rng, n_boot=n_boot,
     )  # fmt: skip
     if not poses and not paths:
         raise UserError(
@@ -249,27 +265,19 @@ def iso9283(
     return Iso9283Result(poses, distances, paths, corners)
 
 
-def _pose(name, c, ds, cluster, tp, tq, time, position, all_dwells, band, drift_cycles):
+def _pose(
+    name, c, ds, cluster, tp, tq, time, position, all_dwells, band, drift_cycles, rng, n_boot
+):
     targets = np.array([d.target for d in ds])
     cp, cq = tp[targets[0]], tq[targets[0]]
     x = np.array([d.position for d in ds])
     q = np.array([d.quaternion_wxyz for d in ds])
-    n = x.shape[0]
-    ap_xyz, rp = _ap_rp(x, cp)
-    abc = error_components(np.broadcast_to(cq, q.shape), q)
-    q_mean = mean_quaternion(q)
-    ang = rotation_angle(np.broadcast_to(q_mean, q.shape), q)
     # multi-directional: group attainments by the pose they came from
-    prev = np.array([cluster[t - 1] if t > 0 else -1 for t in targets])
-    bary = [x[prev == p].mean(axis=0) for p in np.unique(prev)]
-    vap = (
-        max(np.linalg.norm(a - b) for i, a in enumerate(bary) for b in bary[i + 1 :])
-        if len(bary) > 1
-        else float("nan")
-    )
+    approach = np.array([cluster[t - 1] if t > 0 else -1 for t in targets])
+    values, ci = pose_statistics(x, q, cp, cq, approach, drift_cycles, rng, n_boot)
     # stabilisation and overshoot: from the end of the previous dwell to the end of this one
     t_stab, ov = [], []
-    lim = max(rp, _MIN_BAND) if band is None else band
+    lim = max(values["RP"], _MIN_BAND) if band is None else band
     stops = {d.start: prev_d.stop for prev_d, d in zip(all_dwells[:-1], all_dwells[1:])}
     for d in ds:
         lo = stops.get(d.start, max(0, d.start - (d.stop - d.start)))
@@ -292,19 +300,12 @@ def _pose(name, c, ds, cluster, tp, tq, time, position, all_dwells, band, drift_
             t_stab.append(float(tt[settled] - tt[first]))
         peak = float(r[first:].max())
         ov.append(peak if peak > lim else 0.0)
-    if drift_cycles is None:
-        drift_cycles = max(2, n // 3)
-    if n >= 4 and 2 <= drift_cycles <= n // 2:
-        e_xyz, e_rp = _ap_rp(x[:drift_cycles], cp)
-        l_xyz, l_rp = _ap_rp(x[-drift_cycles:], cp)
-        dap = abs(float(np.linalg.norm(l_xyz)) - float(np.linalg.norm(e_xyz)))
-        drp = abs(l_rp - e_rp)
-    else:
-        dap = drp = float("nan")
 
     def stat(v: list[float], f) -> float:
         return float(f(v)) if v else float("nan")
 
+    ci["t_stab_mean"] = pair(*t_interval(np.array(t_stab)))
+    ci["overshoot_mean"] = pair(*t_interval(np.array(ov)))
     return PoseCharacteristics(
         name=name,
         commanded_position=cp,
@@ -312,22 +313,102 @@ def _pose(name, c, ds, cluster, tp, tq, time, position, all_dwells, band, drift_
         attained_position=x,
         attained_quaternion_wxyz=q,
         attained_time=np.array([time[(d.start + d.stop) // 2] for d in ds]),
-        n_cycles=n,
-        AP_xyz=ap_xyz,
-        AP=float(np.linalg.norm(ap_xyz)),
-        RP=rp,
-        AP_abc=abc.mean(axis=0),
-        RP_abc=3.0 * np.std(abc, axis=0, ddof=1),
-        AP_angle=float(rotation_angle(cq, q_mean)),
-        RP_angle=float(ang.mean() + 3.0 * _s(ang)),
-        vAP=float(vap),
+        approach=approach,
+        **values,
         t_stab_mean=stat(t_stab, np.mean),
         t_stab_max=stat(t_stab, np.max),
         overshoot_mean=stat(ov, np.mean),
         overshoot_max=stat(ov, np.max),
-        dAP=dap,
-        dRP=drp,
+        ci=ci,
     )
+
+
+def pose_statistics(
+    x: Float[np.ndarray, "cycles 3"],
+    q: Float[np.ndarray, "cycles 4"],
+    commanded_position: Float[np.ndarray, "3"],
+    commanded_quaternion_wxyz: Float[np.ndarray, "4"],
+    approach: np.ndarray | None = None,
+    drift_cycles: int | None = None,
+    rng: np.random.Generator | None = None,
+    n_boot: int = N_BOOT,
+) -> tuple[dict[str, Any], dict[str, Interval]]:
+    """Pose characteristics of one test pose from its attained poses, cycle by cycle.
+
+    `x` [m] and `q` (w, x, y, z) in the base frame, in time order; `approach` `(cycles,)`
+    labels the direction each attainment came from (vAP; default one direction).
+    Returns the `PoseCharacteristics` fields (less the settling ones) and their 95 %
+    intervals keyed by the JSON names without unit (``APx``, ``RP``, ``AP_angle``, …),
+    in SI units.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    cp, cq = commanded_position, commanded_quaternion_wxyz
+    n = x.shape[0]
+    approach = np.zeros(n, np.int64) if approach is None else np.asarray(approach)
+    ap_xyz, rp = _ap_rp(x, cp)
+    abc = error_components(np.broadcast_to(cq, q.shape), q)
+    q_mean = mean_quaternion(q)
+    ang = rotation_angle(np.broadcast_to(q_mean, q.shape), q)
+    ci: dict[str, Interval] = {}
+    lo, hi = t_interval(x - cp)
+    lo_abc, hi_abc = t_interval(abc)
+    rlo, rhi = three_s_interval(abc)
+    for k, axis in enumerate("xyz"):
+        ci[f"AP{axis}"] = pair(lo[k], hi[k])
+    for k, axis in enumerate("abc"):
+        ci[f"AP{axis}"] = pair(lo_abc[k], hi_abc[k])
+        ci[f"RP{axis}"] = pair(rlo[k], rhi[k])
+    ci["AP"] = length_interval(x - cp, None, rng, n_boot)
+    ci["RP"] = rp_gaussian_interval(x - x.mean(axis=0))
+    # rotation vectors of the errors: the length of their mean is the single angle AP
+    # to first order; lengths of the ones from the mean orientation are the angles of RP
+    err = (to_rotation(q) * to_rotation(cq).inv()).as_rotvec()
+    ci["AP_angle"] = length_interval(err, None, rng, n_boot)
+    ci["RP_angle"] = rp_gaussian_interval((to_rotation(q) * to_rotation(q_mean).inv()).as_rotvec())
+
+    labels = np.unique(approach)
+    groups = [x[approach == g] for g in labels]
+    if len(groups) > 1:
+        bary = np.array([g.mean(axis=0) for g in groups])
+        dist = np.linalg.norm(bary[:, None] - bary[None], axis=-1)
+        i, j = np.unravel_index(np.argmax(dist), dist.shape)
+        vap = float(dist[i, j])
+        ci["vAP"] = length_interval(groups[i], groups[j], rng, n_boot)
+    else:
+        vap = float("nan")
+        ci["vAP"] = NAN_INTERVAL
+    if drift_cycles is None:
+        drift_cycles = max(2, n // 3)
+    if n >= 4 and 2 <= drift_cycles <= n // 2:
+        early, late = x[:drift_cycles], x[-drift_cycles:]
+        e_xyz, e_rp = _ap_rp(early, cp)
+        l_xyz, l_rp = _ap_rp(late, cp)
+        dap = abs(float(np.linalg.norm(l_xyz)) - float(np.linalg.norm(e_xyz)))
+        drp = abs(l_rp - e_rp)
+
+        # |AP| changes along the AP directions: project each group's cycles on its own
+        # AP direction (lengths near-linear where |AP| ≫ its standard error)
+        pe = (early - cp) @ (e_xyz / max(float(np.linalg.norm(e_xyz)), 1e-300))
+        pl = (late - cp) @ (l_xyz / max(float(np.linalg.norm(l_xyz)), 1e-300))
+        ci["dAP"] = fold_abs(*welch_interval(pe, pl))
+        ci["dRP"] = fold_abs(*rp_difference_interval(early, late))
+    else:
+        dap = drp = float("nan")
+        ci["dAP"] = ci["dRP"] = NAN_INTERVAL
+    values = {
+        "n_cycles": n,
+        "AP_xyz": ap_xyz,
+        "AP": float(np.linalg.norm(ap_xyz)),
+        "RP": rp,
+        "AP_abc": abc.mean(axis=0),
+        "RP_abc": 3.0 * np.std(abc, axis=0, ddof=1),
+        "AP_angle": float(rotation_angle(cq, q_mean)),
+        "RP_angle": float(ang.mean() + 3.0 * _s(ang)),
+        "vAP": vap,
+        "dAP": dap,
+        "dRP": drp,
+    }
+    return values, ci
 
 
 def _ap_rp(x: np.ndarray, commanded: np.ndarray) -> tuple[np.ndarray, float]:
@@ -353,6 +434,7 @@ def _distances(dwells, cluster, test, names, tp) -> list[DistanceCharacteristics
             continue
         d = np.array([x[0] for x in v])
         dc = v[0][1]
+        ci = {"AD": pair(*t_interval(d - dc)), "RD": pair(*three_s_interval(d))}
         out.append(DistanceCharacteristics(f"{names[ca]}-{names[cb]}", dc, float(d.mean() - dc),
-                                           3.0 * _s(d), len(v)))  # fmt: skip
+                                           3.0 * _s(d), len(v), ci))  # fmt: skip
     return out

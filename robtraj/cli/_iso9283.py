@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import argparse
-
-import numpy as np
+import sys
 
 from . import _analysis_inputs, _output
 
@@ -32,18 +31,35 @@ def iso_of(rec, bf):
     )
 
 
+ISO_CYCLES = 30  # the standard's number of cycles for pose and path characteristics
+_UNITS = {"_mm_per_s": "mm/s", "_percent": "%", "_mm": "mm", "_deg": "°", "_s": "s"}
+
+
 def print_table(res) -> None:
-    print(f"{'pose':>5} {'cycles':>6} {'AP [mm]':>9} {'RP [mm]':>9} {'AP∠ [°]':>9} {'RP∠ [°]':>9}")
-    for p in res.poses:
+    """Each characteristic with its 95 % interval, block by block, with the cycles it
+    rests on; warns (stderr) where a pose or path has fewer than the standard's 30."""
+    doc = res.to_json()
+    few = []
+    for block, items in doc.items():
+        for name, d in items.items():
+            n = d.get("n_cycles", d.get("n"))
+            print(f"{block[:-1]} {name}: {n} cycles")
+            if n is not None and n < ISO_CYCLES:
+                few.append(f"{name} ({n})")
+            for key, value in d.items():
+                if f"{key}_ci95" not in d:
+                    continue
+                suffix = next((k for k in _UNITS if key.endswith(k)), "")
+                label, unit = key[: len(key) - len(suffix)], _UNITS.get(suffix, "")
+                ci = d[f"{key}_ci95"]
+                band = f"[{ci[0]:.4g}, {ci[1]:.4g}]" if ci is not None else "(no interval)"
+                shown = "n/a" if value is None else f"{value:.4g}"
+                print(f"  {label:<14} {shown:>11} {unit:<4} 95 % CI {band}")
+    if few:
         print(
-            f"{p.name:>5} {p.n_cycles:>6} {p.AP * 1e3:9.4f} {p.RP * 1e3:9.4f} "
-            f"{np.degrees(p.AP_angle):9.5f} {np.degrees(p.RP_angle):9.5f}"
-        )
-    for path in res.paths:
-        d = path.to_json()
-        keys = [k for k in ("AT_mm", "RT_mm", "AV_percent", "RV_percent", "FV_mm_per_s") if k in d]
-        print(
-            f"path {path.name}: " + ", ".join(f"{k} {d[k]:.4g}" for k in keys if d[k] is not None)
+            f"robtraj: warning: fewer than the standard's {ISO_CYCLES} cycles: {', '.join(few)}; "
+            "the characteristics and their intervals rest on these",
+            file=sys.stderr,
         )
 
 

@@ -1,7 +1,15 @@
 """The simulator: scenarios, robot motion, effects, visibility and noise → Recording."""
 
 from ._motion import Move, trapezoid_duration, trapezoid_progress
-from ._scenarios import DEFAULT_DURATION, ISO_CUBE_CENTRE, ISO_CUBE_SIDE, SCENARIOS, iso_cube_poses
+from ._scenarios import (
+    DEFAULT_DURATION,
+    ISO_CUBE_CENTRE,
+    ISO_CUBE_SIDE,
+    SCENARIOS,
+    iso_cube_cycles,
+    iso_cube_poses,
+    iso_cube_truth,
+)
 from ._simulate import simulate
 
 __all__ = [
@@ -10,7 +18,9 @@ __all__ = [
     "ISO_CUBE_SIDE",
     "Move",
     "SCENARIOS",
+    "iso_cube_cycles",
     "iso_cube_poses",
+    "iso_cube_truth",
     "simulate",
     "trapezoid_duration",
     "trapezoid_progress",

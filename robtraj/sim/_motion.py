@@ -25,13 +25,25 @@ JOINT_ACCELERATION = 3.0  # [rad/s²]
 
 @dataclasses.dataclass(frozen=True)
 class Move:
-    """One program step: reach `position`/`quaternion_wxyz` (TCP in base) then dwell."""
+    """One program step: reach `position`/`quaternion_wxyz` (TCP in base) then dwell.
+
+    `error` [m]: the robot attains `position + error` instead (the program keeps
+    `position`). `settle` = (amplitude [m], decay time τ [s], frequency [Hz]): after a
+    linear move the TCP rings about the attained position along the move's direction,
+    amplitude·e^(−t/τ)·sin(2π·frequency·t), t from the arrival.
+    """
 
     position: np.ndarray
     quaternion_wxyz: np.ndarray
     motion: str  # "start", "linear" or "joint"
     speed: float  # [m/s]
     dwell: float  # [s] standing still after arriving
+    error: np.ndarray | None = None
+    settle: tuple[float, float, float] | None = None
+
+    @property
+    def attained(self) -> np.ndarray:
+        return self.position if self.error is None else self.position + self.error
 
 
 def trapezoid_duration(distance: float, speed: float, acceleration: float) -> float:
@@ -117,7 +129,7 @@ def joint_log(
 
     def flange_target(m: Move) -> jaxlie.SE3:
         tcp = jaxlie.SE3.from_rotation_and_translation(
-            jaxlie.SO3(jnp.asarray(m.quaternion_wxyz)), jnp.asarray(m.position)
+            jaxlie.SO3(jnp.asarray(m.quaternion_wxyz)), jnp.asarray(m.attained)
         )
         return tcp @ tool_from_flange
 
@@ -132,7 +144,7 @@ def joint_log(
             dq = float(np.max(np.abs(q_targets[-1] - q_targets[-2])))
             d, ta = _rest_to_rest(dq, JOINT_SPEED, JOINT_ACCELERATION)
         else:
-            dist = float(np.linalg.norm(b.position - a.position))
+            dist = float(np.linalg.norm(b.attained - a.attained))
             ang = (
                 Rotation.from_quat(a.quaternion_wxyz, scalar_first=True).inv()
                 * Rotation.from_quat(b.quaternion_wxyz, scalar_first=True)
@@ -164,13 +176,24 @@ def joint_log(
         if b.motion == "joint":
             q_direct[moving] = q_targets[i - 1] + s[:, None] * (q_targets[i] - q_targets[i - 1])
             continue
-        pos = a.position + s[:, None] * (b.position - a.position)
+        pos = a.attained + s[:, None] * (b.attained - a.attained)
         ends = np.stack([a.quaternion_wxyz, b.quaternion_wxyz])
         rots = Slerp([0.0, 1.0], Rotation.from_quat(ends, scalar_first=True))(s)
         flange_rot = rots * tff_rot
         poses[moving, :4] = flange_rot.as_quat(scalar_first=True)
         poses[moving, 4:] = pos + rots.apply(tff_pos)
         use_direct[moving] = False
+        step = b.attained - a.attained
+        if b.settle is not None and np.linalg.norm(step) > 0:
+            amp, tau, freq = b.settle
+            dt = times - (s0 + d)
+            ring = (dt > 0) & (dt <= min(b.dwell, 8.0 * tau))
+            r = amp * np.exp(-dt[ring] / tau) * np.sin(2.0 * np.pi * freq * dt[ring])
+            rot = Rotation.from_quat(b.quaternion_wxyz, scalar_first=True)
+            tcp = b.attained + r[:, None] * step / np.linalg.norm(step)
+            poses[ring, :4] = (rot * tff_rot).as_quat(scalar_first=True)
+            poses[ring, 4:] = tcp + rot.apply(tff_pos)
+            use_direct[ring] = False
     q = np.asarray(
         _ik_track(
             robot,

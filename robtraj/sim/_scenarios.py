@@ -6,16 +6,19 @@ it; the LED hemisphere's axis (tool z) faces the camera when the tool is unrotat
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import UserError
-from ._motion import Move
+from ._motion import LINEAR_ACCELERATION, Move
 
 #: TCP orientation with tool z along base +x (toward the camera), tool y along base y
 FACING_CAMERA = Rotation.from_matrix(np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]))
 
-DEFAULT_DURATION = {"paper": 30.0, "calibration": 60.0, "iso_cube": 60.0, "crossing": 20.0}
+#: iso_cube: 30 pose cycles (the standard's number) and the path test
+DEFAULT_DURATION = {"paper": 30.0, "calibration": 60.0, "iso_cube": 610.0, "crossing": 20.0}
 
 #: ISO 9283 cube used by `iso_cube`: centre in the base frame [m] and side [m]
 ISO_CUBE_CENTRE = np.array([1.15, 0.0, 0.95])
@@ -75,21 +78,43 @@ def iso_cube_poses() -> np.ndarray:
     return ISO_CUBE_CENTRE + np.vstack([np.zeros(3), 0.8 * corners])
 
 
-def iso_cube(duration: float, rng: np.random.Generator) -> list[Move]:
-    """ISO 9283 cube test: pose cycles P1→P5→P4→P3→P2 (1 s dwell), then a rectangular
-    path through P2–P5 with reorientation, repeated.
+#: ISO 9283 truths injected by `iso_cube`, in the base frame (see `iso_cube_truth`):
+#: attained − commanded position along the approach direction [m] (gives vAP)
+ISO_CUBE_APPROACH_ERROR = 40e-6
+#: attained − commanded position growing by this much per pose cycle [m] (gives dAP)
+ISO_CUBE_DRIFT = np.array([3e-6, -1e-6, 2e-6])
+#: ringing after each pose-test arrival along the approach: amplitude [m], τ [s], f [Hz]
+ISO_CUBE_SETTLE = (2e-3, 0.06, 5.0)
+ISO_CUBE_SPEED = 0.4  # [m/s] pose-test moves
+ISO_CUBE_CYCLE_TIME = 13.5  # [s] one pose cycle (five moves, 1 s dwell each)
+#: P1 → P5 → P4 → P3 → P2 → P1 in even cycles, the reverse in odd ones
+ISO_CUBE_ORDER = ([4, 3, 2, 1, 0], [1, 2, 3, 4, 0])
 
-    The number of pose cycles fills two thirds of `duration`; the path test the rest.
+
+def iso_cube_cycles(duration: float) -> int:
+    """Pose cycles of `iso_cube` in `duration` seconds (two thirds of it; at least 3)."""
+    return max(3, int(duration * 2 / 3 / ISO_CUBE_CYCLE_TIME))
+
+
+def iso_cube(duration: float, rng: np.random.Generator) -> list[Move]:
+    """ISO 9283 cube test: `iso_cube_cycles(duration)` pose cycles through P1–P5 (1 s
+    dwell), alternately in the two directions so each pose is approached from two sides,
+    then a rectangular path through P2–P5 with reorientation, repeated.
+
+    The pose-test moves carry the known truths of `iso_cube_truth`: an error along the
+    approach direction, a drift growing with the cycle and a ringing after arrival.
     """
     poses = iso_cube_poses()
     q0 = _q(FACING_CAMERA)
-    speed = 0.4
-    cycle = [0, 4, 3, 2, 1]
-    n_cycles = max(3, int(duration * 2 / 3 / 9.0))
+    speed = ISO_CUBE_SPEED
+    n_cycles = iso_cube_cycles(duration)
     moves = [Move(poses[0], q0, "start", 0.0, 1.0)]
-    for _ in range(n_cycles):
-        for k in cycle[1:] + cycle[:1]:
-            moves.append(Move(poses[k], q0, "linear", speed, 1.0))
+    for c in range(n_cycles):
+        for k in ISO_CUBE_ORDER[c % 2]:
+            prev = moves[-1].position
+            u = (poses[k] - prev) / np.linalg.norm(poses[k] - prev)
+            err = ISO_CUBE_APPROACH_ERROR * u + ISO_CUBE_DRIFT * c
+            moves.append(Move(poses[k], q0, "linear", speed, 1.0, err, ISO_CUBE_SETTLE))
     rect = [poses[1], poses[2], poses[3], poses[4]]
     tilts = [_tilt("y", 15.0), _tilt("z", 15.0), _tilt("y", -15.0), _tilt("z", -15.0)]
     n_paths = max(2, int(duration / 3 / 9.0))
@@ -100,6 +125,55 @@ def iso_cube(duration: float, rng: np.random.Generator) -> list[Move]:
         moves[-1] = Move(rect[0], tilts[0], "linear", 0.2, 0.5)
     moves.append(Move(poses[0], q0, "linear", speed, 0.5))
     return moves
+
+
+def iso_cube_truth(
+    duration: float, band: float, drift_cycles: int | None = None
+) -> dict[str, dict[str, Any]]:
+    """ISO 9283 characteristics `iso_cube` injects, per test pose ``P1``…``P5`` (named
+    as the analysis names them: in order of first appearance in the program), with the
+    `commanded` position [m].
+
+    `vAP` [m]: distance between the barycentres of the two approach directions
+    (approach error × |u₁ − u₂|, plus the drift's share where the directions' cycles
+    differ); `dAP` [m]: ||AP late| − |AP early|| over `drift_cycles` (default a third)
+    cycles at each end; `overshoot` [m] and `t_stab` [s] of the ringing for limit band
+    `band` [m] (time from entering the band on the decelerating approach until the
+    ringing stays inside it).
+    """
+    n = iso_cube_cycles(duration)
+    m = max(2, n // 3) if drift_cycles is None else drift_cycles
+    poses = iso_cube_poses()
+    errs: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = {}
+    prev = poses[0]
+    for c in range(n):
+        for k in ISO_CUBE_ORDER[c % 2]:
+            u = (poses[k] - prev) / np.linalg.norm(poses[k] - prev)
+            errs.setdefault(k, []).append((c, u, ISO_CUBE_APPROACH_ERROR * u + ISO_CUBE_DRIFT * c))
+            prev = poses[k]
+    amp, tau, freq = ISO_CUBE_SETTLE
+    w = 2.0 * np.pi * freq
+    t_peak = np.arctan(w * tau) / w
+    t = np.arange(0.0, 8.0 * tau, 1e-6)
+    out_band = np.flatnonzero(amp * np.exp(-t / tau) * np.abs(np.sin(w * t)) > band)
+    t_out = t[out_band[-1]] if out_band.size else 0.0
+    t_enter = np.sqrt(2.0 * band / LINEAR_ACCELERATION)  # rest-to-rest deceleration
+    # the analysis names poses in order of first appearance in the program
+    out = {}
+    for i, k in enumerate([0, *ISO_CUBE_ORDER[0][:-1]]):
+        e = np.array([v[2] for v in errs[k]])
+        dirs = np.array([v[1] for v in errs[k]])
+        first = np.all(np.isclose(dirs, dirs[0]), axis=1)
+        vap = float(np.linalg.norm(e[first].mean(0) - e[~first].mean(0)))
+        dap = abs(float(np.linalg.norm(e[-m:].mean(0)) - np.linalg.norm(e[:m].mean(0))))
+        out[f"P{i + 1}"] = {
+            "commanded": poses[k],
+            "vAP": vap,
+            "dAP": dap,
+            "overshoot": float(amp * np.exp(-t_peak / tau) * np.sin(w * t_peak)),
+            "t_stab": float(t_out + t_enter),
+        }
+    return out
 
 
 def crossing(duration: float, rng: np.random.Generator) -> list[Move]:

@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 import pytest
-from _synthetic import attained, cube_program, trajectory
+from _synthetic import attained, cube_program, round_corners, trajectory
 from scipy.spatial.transform import Rotation
 
 import robtraj
@@ -148,20 +148,154 @@ def test_to_json_is_plain_json(cube):
 def test_stabilisation_and_overshoot():
     prog, dwell = cube_program(4, 0)
     pos, q = attained(prog, OFFSET, 0.0, ROT_OFFSET, 0.0, np.random.default_rng(0))
-    t, p, qq, seg = trajectory(prog, pos, q, dwell, rate=500.0, dwell_time=2.0)
+    rate, band, amp, tau, freq = 500.0, 1e-4, 5e-4, 0.1, 5.0
+    t, p, qq, seg = trajectory(prog, pos, q, dwell, rate=rate, dwell_time=2.0)
     # a damped ringing of 0.5 mm along x after every arrival (τ = 0.1 s, 5 Hz)
     still = np.concatenate([[False], np.all(np.diff(p, axis=0) == 0, axis=1)])
     arrive = np.flatnonzero(np.diff(still.astype(int)) == 1)  # first frame at the target
     ring = np.zeros(t.size)
     for i in arrive:
         dt = t[i:] - t[i]
-        ring[i:] += np.where(dt < 1.0, 5e-4 * np.exp(-dt / 0.1) * np.sin(2 * np.pi * 5 * dt), 0)
+        ring[i:] += np.where(dt < 1.0, amp * np.exp(-dt / tau) * np.sin(2 * np.pi * freq * dt), 0)
     p = p + ring[:, None] * [1.0, 0, 0]
-    res = iso9283(prog, t, p, qq, segment=seg, band=1e-4, min_dwell=0.5)
+    res = iso9283(prog, t, p, qq, segment=seg, band=band, min_dwell=0.5)
+    # truth from the continuous ringing: the peak at tan(ωt) = ωτ; the last time outside
+    # the band on a 1 µs grid. The approach at 0.2 m/s enters the band at the arrival
+    # frame, so the measurement is the truth up to one frame (1/rate) of sampling.
+    w = 2 * np.pi * freq
+    t_peak = np.arctan(w * tau) / w
+    overshoot = amp * np.exp(-t_peak / tau) * np.sin(w * t_peak)
+    fine = np.arange(0.0, 1.0, 1e-6)
+    t_stab = fine[np.flatnonzero(amp * np.exp(-fine / tau) * np.abs(np.sin(w * fine)) > band)[-1]]
     for pose in res.poses:
-        # envelope 0.5 mm·e^(−t/0.1) first stays below 0.1 mm after ~0.16 s
-        assert 0.05 < pose.t_stab_mean < 0.3
-        assert 1e-4 < pose.overshoot_max < 5e-4
+        assert abs(pose.t_stab_mean - t_stab) <= 1.0 / rate + 1e-9  # < 10 % of t_stab
+        assert abs(pose.t_stab_max - t_stab) <= 1.0 / rate + 1e-9
+        # a sampled peak is low by at most amp·(ω/rate)²/8 (0.2 % here; 10 % is allowed)
+        assert 0 <= overshoot - pose.overshoot_max <= amp * (w / rate) ** 2 / 8
+        assert abs(pose.overshoot_mean - overshoot) < 0.1 * overshoot
+        lo, hi = pose.ci["t_stab_mean"]
+        assert lo <= pose.t_stab_mean <= hi
+
+
+def _rp_sd(m: int, rng) -> float:
+    """Standard deviation of RP over m cycles of N(0, I₃), by simulation."""
+    x = rng.normal(size=(4000, m, 3))
+    l = np.linalg.norm(x - x.mean(axis=1, keepdims=True), axis=2)
+    return float(np.std(l.mean(1) + 3 * l.std(1, ddof=1)))
+
+
+def test_vap_and_drift_recovered_from_injected_truth():
+    """Each pose approached from two directions with an error B along the approach, a
+    drift D per cycle, and N(0, σ²) scatter; vAP and dAP against their injected values."""
+    rng = np.random.default_rng(11)
+    prog, dwell = cube_program(CYCLES, 0, alternate=True)
+    tp = prog.targets.position
+    u = np.zeros_like(tp)
+    u[1:] = np.diff(tp, axis=0) / np.linalg.norm(np.diff(tp, axis=0), axis=1, keepdims=True)
+    cycle = np.maximum(np.arange(len(tp)) - 1, 0) // 5
+    approach_error, drift = 0.2e-3, np.array([10e-6, -5e-6, 0.0])  # [m], [m per cycle]
+    truth_err = OFFSET + approach_error * u + drift * cycle[:, None]
+    pos, q = attained(prog, truth_err, SIGMA, ROT_OFFSET, ROT_SIGMA, rng)
+    t, p, qq, seg = trajectory(prog, pos, q, dwell)
+    res = iso9283(prog, t, p, qq, segment=seg)
+    m = CYCLES // 3
+    for pose in res.poses:
+        js = np.flatnonzero(np.all(np.isclose(tp, pose.commanded_position), axis=1))
+        js = js[js > 0]  # the start target is not attained by a move
+        dirs = np.unique(np.round(u[js], 9), axis=0)
+        assert len(dirs) == 2 and len(js) == CYCLES
+        e = truth_err[js]
+        first = np.all(np.isclose(u[js], dirs[0]), axis=1)
+        vap = np.linalg.norm(e[first].mean(0) - e[~first].mean(0))
+        dap = abs(np.linalg.norm(e[-m:].mean(0)) - np.linalg.norm(e[:m].mean(0)))
+        # two barycentres of 15 cycles each: σ·√(2/15) per axis; 4σ (≈ 6e-5 two-sided)
+        assert abs(pose.vAP - vap) < 4 * SIGMA * np.sqrt(2 / 15), (pose.vAP, vap)
+        assert abs(pose.dAP - dap) < 4 * SIGMA * np.sqrt(2 / m), (pose.dAP, dap)
+
+
+def test_drp_recovered_from_injected_truth():
+    """Late cycles scatter 2× as much as early ones: dRP = RP(2σ) − RP(σ)."""
+    rng = np.random.default_rng(12)
+    prog, dwell = cube_program(CYCLES, 0)
+    n_t = len(prog.targets.position)
+    late = np.arange(n_t) > 1 + 5 * (CYCLES - CYCLES // 3)
+    sigma = np.where(late, 2 * SIGMA, SIGMA)[:, None]
+    pos = prog.targets.position + OFFSET + sigma * rng.normal(size=(n_t, 3))
+    _, q = attained(prog, OFFSET, 0.0, ROT_OFFSET, ROT_SIGMA, rng)
+    t, p, qq, seg = trajectory(prog, pos, q, dwell)
+    res = iso9283(prog, t, p, qq, segment=seg)
+    m = CYCLES // 3
+    # RP of N(0, σ²I) is σ·(2√(2/π) + 3√(3 − 8/π)) up to the barycentre's O(1/m) shrinkage
+    per_sigma = 2 * np.sqrt(2 / np.pi) + 3 * np.sqrt(3 - 8 / np.pi)
+    drp = (2 * SIGMA - SIGMA) * per_sigma
+    tol = 4 * SIGMA * _rp_sd(m, rng) * np.sqrt(1 + 2**2)
+    for pose in res.poses:
+        assert abs(pose.dRP - drp) < tol, (pose.dRP, drp, tol)
+
+
+def test_corner_round_off_and_overshoot_recovered():
+    """Corners cut by an arc of radius ρ (CR = ρ(√2 − 1)), then a bump of height h out
+    beyond the second leg, δ(s) = h·sin(π(s − 2ρ)/ℓ) for s ∈ [2ρ, 2ρ + ℓ] along it
+    (CO = h, larger than any deviation of the arc)."""
+    prog, dwell = cube_program(2, 4)
+    pos, q = prog.targets.position, prog.targets.quaternion_wxyz
+    rate, radius, h, bump = 1000.0, 2e-3, 5e-3, 0.04
+    t, p, qq, seg = trajectory(prog, pos, q, dwell, rate=rate)
+    p = round_corners(prog, t, p, seg, radius)
+    tp, lin = prog.targets.position, prog.motion == "linear"
+    for j in range(1, len(tp) - 1):
+        if lin[j] and lin[j + 1]:
+            d1 = (tp[j] - tp[j - 1]) / np.linalg.norm(tp[j] - tp[j - 1])
+            d2 = (tp[j + 1] - tp[j]) / np.linalg.norm(tp[j + 1] - tp[j])
+            s = (p[seg == j + 1] - tp[j]) @ d2 - 2 * radius
+            on = (s > 0) & (s < bump)
+            idx = np.flatnonzero(seg == j + 1)[on]
+            p[idx] += h * np.sin(np.pi * s[on] / bump)[:, None] * d1
+    res = iso9283(prog, t, p, qq, segment=seg)
+    assert len(res.corners) == 4
+    # frames 0.2 mm apart: the closest one misses the arc's closest point by ≤ 0.1 mm
+    # along it, i.e. by ≤ (0.1 mm)²/(2ρ) in distance; the bump's sampled peak is low by
+    # ≤ h·(π·0.1 mm/ℓ)²/2
+    step = 0.2 / rate
+    for corner in res.corners:
+        assert abs(corner.CR_mean - radius * (np.sqrt(2) - 1)) <= step**2 / (8 * radius), corner
+        assert abs(corner.CR_max - radius * (np.sqrt(2) - 1)) <= step**2 / (8 * radius)
+        assert -1e-12 <= h - corner.CO_mean <= h * (np.pi * step / 2 / bump) ** 2 / 2, corner
+        assert -1e-12 <= h - corner.CO_max <= h * (np.pi * step / 2 / bump) ** 2 / 2
+
+
+def test_velocity_characteristics_recovered():
+    """Each pass at its own speed (scale 0.97 + N(0, 0.02²)) with a 3 % ripple at 4 Hz:
+    AV, RV and FV against the injected speeds."""
+    rng = np.random.default_rng(5)
+    prog, dwell = cube_program(2, 8)
+    n_t = len(prog.targets.position)
+    scale = 0.97 + 0.02 * rng.normal(size=n_t)
+    a, f, rate, window = 0.03, 4.0, 200.0, 0.05
+    t, p, qq, seg = trajectory(
+        prog, prog.targets.position, prog.targets.quaternion_wxyz, dwell, rate=rate,
+        speed_scale=scale, ripple=(a, f),
+    )  # fmt: skip
+    res = iso9283(prog, t, p, qq, segment=seg, speed_window=window)
+    first_rect = int(np.flatnonzero(prog.motion == "linear")[0])
+    for k, path in enumerate(res.paths):  # in the order of the rectangle's legs
+        vc = path.commanded_speed
+        occ = [first_rect + k + 4 * c for c in range(8)]
+        v = scale[occ] * vc  # injected mean speed of each pass (whole ripple periods)
+        # the mean steady speed per pass is v exactly; AV, RV are their mean and 3·S
+        assert np.isclose(path.AV, v.mean() / vc - 1, atol=2e-3), (path.AV, v.mean() / vc - 1)
+        assert np.isclose(path.RV, 3 * v.std(ddof=1) / vc, rtol=0.05, atol=2e-3)
+        # a sinusoid of amplitude a·v seen through a central difference over ±h has
+        # amplitude a·v·sin(ωh)/(ωh); FV = max over passes of (max − min), frames sample the
+        # extremes to within 1 − cos(ω/2rate) of the amplitude (< 0.3 %)
+        lengths = np.linalg.norm(prog.targets.position[occ] - prog.targets.position[
+            np.array(occ) - 1], axis=1)  # fmt: skip
+        durs = lengths / v
+        w = 4 * np.pi * np.maximum(np.round(f * durs / 2), 1) / durs
+        fv = np.max(2 * a * v * np.sin(w * window / 2) / (w * window / 2))
+        assert abs(path.FV - fv) < 0.01 * fv, (path.FV, fv)
+        lo, hi = path.ci["AV"]
+        assert lo <= path.AV <= hi
 
 
 def test_errors():
@@ -175,3 +309,34 @@ def test_errors():
     t, p, qq, seg = trajectory(prog, pos, q, np.zeros_like(dwell))  # never stops
     with pytest.raises(robtraj.UserError, match="no ISO 9283 cycles"):
         iso9283(prog, t, p, qq, segment=seg)
+
+
+def test_cli_table_prints_intervals_and_warns_below_30_cycles(cube, capsys):
+    from robtraj.cli._iso9283 import print_table
+
+    res = cube[-1]
+    print_table(res)
+    out, err = capsys.readouterr()
+    assert f"pose P1: {CYCLES} cycles" in out
+    # every characteristic with an interval in the JSON is printed with it
+    ap = [line for line in out.splitlines() if line.split()[:1] == ["AP"]]
+    lo, hi = res.poses[0].to_json()["AP_mm_ci95"]
+    assert ap and f"[{lo:.4g}, {hi:.4g}]" in ap[0]
+    n_ci = sum(k.endswith("_ci95") for block in res.to_json().values()
+               for d in block.values() for k in d)  # fmt: skip
+    assert out.count("95 % CI") == n_ci
+    # the pose test has the standard's 30 cycles, the path test 6: only the paths warn
+    assert "warning: fewer than the standard's 30 cycles" in err
+    assert f"({PATH_CYCLES})" in err and "P1 (" not in err
+
+
+def test_json_intervals_next_to_values(cube):
+    out = json.loads(json.dumps(cube[-1].to_json()))
+    p1 = out["poses"]["P1"]
+    for key in ["AP_mm", "RP_mm", "APx_mm", "RPa_deg", "AP_angle_deg", "RP_angle_deg"]:
+        lo, hi = p1[f"{key}_ci95"]
+        assert lo <= p1[key] <= hi or key in ("RP_mm", "RP_angle_deg"), key
+        assert lo < hi
+    assert p1["t_stab_max_s_ci95"] is None  # a maximum over cycles has no interval
+    path = next(iter(out["paths"].values()))
+    assert path["AV_percent_ci95"] is not None and path["FV_mm_per_s_ci95"] is None

@@ -1,0 +1,270 @@
+"""95 % confidence intervals of ISO 9283 characteristics from their cycles.
+
+Where the sampling distribution is known for normally scattered cycles the interval is
+exact: Student's t for a mean (AP components, AD, AV, mean stabilisation time, …) and
+the χ² interval for a 3·S term (RD, RV, RP per orientation component). Every other
+RP and the single-angle RP (l̄ + 3·S_l of distances to the mean) come from their
+Gaussian sampling distribution (`rp_gaussian_interval`). Every other characteristic
+(lengths of means, maxima over planes, differences between groups of cycles) gets a studentised (bootstrap-t) interval over cycles, stratified
+where cycles fall into groups (approach directions, early/late cycles), each resample
+standardised by its jackknife standard error (second-order accurate, where the
+percentile bootstrap under-covers with few cycles). Bootstraps of l̄ + 3·S_l
+under-cover even at 30 cycles (measured: BCa 85 %, studentised 92 %), hence the
+Gaussian interval for RP. Statistics are vectorised over leading batch axes so a
+whole bootstrap is one array expression.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+from jaxtyping import Float
+from scipy import integrate, stats
+
+LEVEL = 0.95
+N_BOOT = 2000
+
+Interval = tuple[float, float]
+NAN_INTERVAL: Interval = (float("nan"), float("nan"))
+
+
+def t_interval(x: np.ndarray) -> tuple[Any, Any]:
+    """Student-t interval of the mean of `x` over axis 0 (cycles); NaN with < 2 cycles."""
+    x = np.asarray(x, np.float64)
+    n = x.shape[0]
+    if n < 2:
+        nan = np.full(x.shape[1:], np.nan)
+        return nan, nan
+    half = stats.t.ppf(0.5 + LEVEL / 2, n - 1) * np.std(x, axis=0, ddof=1) / np.sqrt(n)
+    m = x.mean(axis=0)
+    return m - half, m + half
+
+
+def welch_interval(a: np.ndarray, b: np.ndarray) -> Interval:
+    """Welch t interval of mean(b) − mean(a) (unequal variances); NaN with < 2 each."""
+    na, nb = len(a), len(b)
+    if na < 2 or nb < 2:
+        return NAN_INTERVAL
+    va, vb = np.var(a, ddof=1) / na, np.var(b, ddof=1) / nb
+    se = np.sqrt(va + vb)
+    nu = (va + vb) ** 2 / (va**2 / (na - 1) + vb**2 / (nb - 1)) if se > 0 else 1.0
+    d = np.mean(b) - np.mean(a)
+    half = stats.t.ppf(0.5 + LEVEL / 2, nu) * se
+    return float(d - half), float(d + half)
+
+
+def length_interval(
+    a: np.ndarray, b: np.ndarray | None, rng: np.random.Generator, n_boot: int = N_BOOT
+) -> Interval:
+    """Interval of the length |mean(b) − mean(a)| of cycles `(n, 3)` (|mean(a)| when `b`
+    is None). Resolved lengths (≥ 3 standard errors) project the cycles on the mean's
+    direction, where the length is linear to first order: Student t (one group) or
+    Welch (two). Shorter ones, where the length's bias matters, take the studentised
+    bootstrap."""
+    if len(a) < 2 or (b is not None and len(b) < 2):
+        return NAN_INTERVAL
+    u = a.mean(axis=0) if b is None else b.mean(axis=0) - a.mean(axis=0)
+    length = float(np.linalg.norm(u))
+    if b is None:
+        pa = a @ (u / length) if length > 0 else a[:, 0] * 0.0
+        se = np.std(pa, ddof=1) / np.sqrt(len(pa)) if len(pa) > 1 else np.nan
+        if length >= 3.0 * se:
+            return pair(*t_interval(pa))
+        return studentized_interval(
+            lambda ab: np.linalg.norm(ab.mean(axis=-2), axis=-1), [a], rng, n_boot
+        )
+    pa, pb = a @ (u / length), b @ (u / length)
+    se = np.sqrt(np.var(pa, ddof=1) / len(pa) + np.var(pb, ddof=1) / len(pb))
+    if length >= 3.0 * se:
+        return welch_interval(pa, pb)
+    return studentized_interval(
+        lambda ab, bb: np.linalg.norm(bb.mean(axis=-2) - ab.mean(axis=-2), axis=-1),
+        [a, b], rng, n_boot,
+    )  # fmt: skip
+
+
+def three_s_interval(x: np.ndarray, level: float = LEVEL) -> tuple[Any, Any]:
+    """χ² interval of 3·σ from the sample standard deviation of `x` over axis 0."""
+    x = np.asarray(x, np.float64)
+    n = x.shape[0]
+    if n < 2:
+        nan = np.full(x.shape[1:], np.nan)
+        return nan, nan
+    s3 = 3.0 * np.std(x, axis=0, ddof=1)
+    lo = s3 * np.sqrt((n - 1) / stats.chi2.ppf(0.5 + level / 2, n - 1))
+    hi = s3 * np.sqrt((n - 1) / stats.chi2.ppf(0.5 - level / 2, n - 1))
+    return lo, hi
+
+
+def _jackknife_se(stat: Callable[..., Any], strata: Sequence[np.ndarray], batch: int) -> Any:
+    """Stratified jackknife standard error of `stat`, batched: strata have `batch`
+    leading axes before the cycle axis; leave one cycle out of one stratum at a time."""
+    var = 0.0
+    for k, s in enumerate(strata):
+        n = s.shape[batch]
+        if n < 2:
+            continue
+        keep = np.flatnonzero(~np.eye(n, dtype=bool)).reshape(n, n - 1) % n
+        args = [np.expand_dims(o, batch) for o in strata]  # a leave-out axis before cycles
+        args[k] = np.take(s, keep, axis=batch)
+        u = stat(*args)  # (…, n)
+        var = var + (n - 1) / n * np.sum((u - u.mean(axis=-1, keepdims=True)) ** 2, axis=-1)
+    return np.sqrt(var)
+
+
+def studentized_interval(
+    stat: Callable[..., Any],
+    strata: Sequence[np.ndarray],
+    rng: np.random.Generator,
+    n_boot: int = N_BOOT,
+) -> Interval:
+    """Studentised (bootstrap-t) interval of `stat(*strata)`, resampling cycles within
+    each stratum and standardising each resample by its own jackknife standard error.
+
+    `strata`: arrays with cycles on axis 0; `stat` takes one array per stratum with any
+    leading batch axes before the cycle axis (the same for all) and returns the
+    statistic per batch element.
+    """
+    strata = [np.asarray(s, np.float64) for s in strata]
+    if any(s.shape[0] < 2 for s in strata):
+        return NAN_INTERVAL
+    theta = float(stat(*strata))
+    se = float(_jackknife_se(stat, strata, 0))
+    if not (np.isfinite(theta) and np.isfinite(se)):
+        return NAN_INTERVAL
+    if se == 0.0:
+        return theta, theta
+    boot = [s[rng.integers(0, s.shape[0], (n_boot, s.shape[0]))] for s in strata]
+    with np.errstate(divide="ignore", invalid="ignore"):  # resamples of one repeated cycle
+        t = (stat(*boot) - theta) / _jackknife_se(stat, boot, 1)
+    t = t[np.isfinite(t)]
+    if t.size < n_boot // 2:
+        return NAN_INTERVAL
+    q_lo, q_hi = np.quantile(t, [0.5 - LEVEL / 2, 0.5 + LEVEL / 2])
+    return theta - q_hi * se, theta - q_lo * se
+
+
+def fold_abs(lo: float, hi: float) -> Interval:
+    """Interval of |d| from an interval [lo, hi] of d."""
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return NAN_INTERVAL
+    if lo <= 0.0 <= hi:
+        return 0.0, max(-lo, hi)
+    return min(abs(lo), abs(hi)), max(abs(lo), abs(hi))
+
+
+def pair(lo, hi) -> Interval:
+    return float(lo), float(hi)
+
+
+# batched statistics (cycles on axis −2 for points, −1 for scalars)
+
+
+def aligned_mean_quaternion(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Mean unit quaternion of `(…, n, 4)` after aligning signs with `ref` `(4,)`: the
+    chordal mean to second order in the scatter, batched."""
+    s = np.where((q @ ref)[..., None] < 0, -q, q).sum(axis=-2)
+    return s / np.linalg.norm(s, axis=-1, keepdims=True)
+
+
+_UNITS = ("_mm_per_s", "_percent", "_mm", "_deg", "_s")
+
+
+def with_intervals(
+    rows: Sequence[tuple[str, float, float]], ci: dict[str, Interval], alias: dict[str, str]
+) -> dict[str, float | list[float] | None]:
+    """JSON entries ``{key: value·scale, key_ci95: [lo·scale, hi·scale] or None}`` from
+    `(key with unit, value in SI, scale)` rows and SI intervals keyed by the key without
+    its unit (or by `alias[that]`); None where no finite interval exists."""
+    out: dict[str, float | list[float] | None] = {}
+    for key, value, scale in rows:
+        base = next((key[: -len(u)] for u in _UNITS if key.endswith(u)), key)
+        lo, hi = ci.get(alias.get(base, base), NAN_INTERVAL)
+        out[key] = float(value) * scale
+        ok = np.isfinite(lo) and np.isfinite(hi)
+        out[f"{key}_ci95"] = [float(lo) * scale, float(hi) * scale] if ok else None
+    return out
+
+
+def _mean_length(w: np.ndarray) -> float:
+    """E|z| for z ~ N(0, diag(w)): √r = ∫₀^∞ (1 − e^(−s·r)) s^(−3/2) ds / (2√π) and
+    E e^(−s|z|²) = Π (1 + 2 s wᵢ)^(−1/2); the integral in u = √s, with w scaled to
+    max 1 (E|z| scales with √w)."""
+    top = float(np.max(w))
+    if top <= 0:
+        return 0.0
+    v = w / top
+
+    def f(u: float) -> float:
+        return (1.0 - np.prod(1.0 + 2.0 * u * u * v) ** -0.5) / (u * u)
+
+    head = integrate.quad(f, 0.0, 1.0)[0]
+    # u > 1 as x = 1/u: f(u) du = (1 − Π x/√(x² + 2vᵢ)) dx
+    tail = integrate.quad(lambda x: 1.0 - np.prod(x / np.sqrt(x * x + 2.0 * v)), 0.0, 1.0)[0]
+    return float(np.sqrt(top) * (head + tail) / np.sqrt(np.pi))
+
+
+def rp_gaussian_interval(
+    deviation: Float[np.ndarray, "cycles 3"], level: float = LEVEL
+) -> Interval:
+    """Interval of RP from the cycles' `deviation` from their mean (`rp_gaussian`)."""
+    return rp_gaussian(deviation, level)[1:]
+
+
+def max_interval(intervals: Sequence[Interval]) -> Interval:
+    """Interval of max_k θ_k from simultaneous intervals of the θ_k (each at level
+    1 − (1 − LEVEL)/K, Bonferroni): if every θ_k lies in its interval, the maximum lies
+    in [max lo_k, max hi_k], so the coverage is at least LEVEL. The maximum of
+    estimates is biased up, so a bootstrap of it misses an equal-valued truth."""
+    iv = np.array([i for i in intervals if np.all(np.isfinite(i))])
+    return (float(iv[:, 0].max()), float(iv[:, 1].max())) if iv.size else NAN_INTERVAL
+
+
+def rp_difference_interval(
+    early: Float[np.ndarray, "cycles 3"], late: Float[np.ndarray, "cycles 3"]
+) -> Interval:
+    """Interval of RP(late) − RP(early) from the two Gaussian intervals by MOVER (Zou and
+    Donner 2008: the half-widths of the two one-sided limits add in quadrature)."""
+    r1, l1, u1 = rp_gaussian(late - late.mean(axis=0))
+    r2, l2, u2 = rp_gaussian(early - early.mean(axis=0))
+    d = r1 - r2
+    return d - np.hypot(r1 - l1, u2 - r2), d + np.hypot(u1 - r1, r2 - l2)
+
+
+def rp_gaussian(
+    deviation: Float[np.ndarray, "cycles 3"], level: float = LEVEL
+) -> tuple[float, float, float]:
+    """Interval of RP = E l + 3·SD l, l = |z|, for cycles scattered as z ~ N(0, Σ).
+
+    Σ is the sample covariance of `deviation` (vectors from the cycles' mean); RP(Σ)
+    scales with √tr Σ, and tr Σ̂ is Satterthwaite-distributed as tr Σ·χ²_ν/ν with
+    ν = (n − 1)(tr Σ)²/tr Σ² (exact for isotropic scatter, ν = 3(n − 1); the plug-in
+    ν̂ errs low, i.e. wide, with few cycles: measured 96 % coverage at 10 cycles). Returns
+    RP(Σ̂) and the interval RP(Σ̂)·√(ν/χ²_ν(0.975)) … RP(Σ̂)·√(ν/χ²_ν(0.025)).
+    """
+    d = np.asarray(deviation, np.float64)
+    n = d.shape[0]
+    if n < 2 or not np.all(np.isfinite(d)):
+        return float("nan"), float("nan"), float("nan")
+    cov = np.cov(d, rowvar=False)
+    tr, tr2 = np.trace(cov), np.sum(cov * cov)
+    if tr <= 0:
+        return 0.0, 0.0, 0.0
+    mean_l = _mean_length(np.clip(np.linalg.eigvalsh(cov), 0.0, None))
+    rp = mean_l + 3.0 * np.sqrt(max(tr - mean_l**2, 0.0))
+    nu = (n - 1) * tr**2 / tr2
+    lo = rp * np.sqrt(nu / stats.chi2.ppf(0.5 + level / 2, nu))
+    hi = rp * np.sqrt(nu / stats.chi2.ppf(0.5 - level / 2, nu))
+    return float(rp), float(lo), float(hi)
+
+
+def batch_rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation angle [rad] of `a⁻¹ ⊗ b` for unit quaternions (w, x, y, z), in NumPy:
+    `2·atan2(|v|, |w|)` as `_quat.rotation_angle`, without compiling a JAX kernel for
+    every bootstrap shape."""
+    a, b = np.broadcast_arrays(a, b)
+    w = np.sum(a * b, axis=-1)
+    v = a[..., :1] * b[..., 1:] - b[..., :1] * a[..., 1:] - np.cross(a[..., 1:], b[..., 1:])
+    return 2.0 * np.arctan2(np.linalg.norm(v, axis=-1), np.abs(w))
