@@ -199,7 +199,7 @@ def path_statistics(
     q: Float[np.ndarray, "passes planes 4"],
     commanded: Float[np.ndarray, "planes 3"],
     commanded_quaternion_wxyz: Float[np.ndarray, "planes 4"],
-    v_mean: Float[np.ndarray, " passes"],
+    v_mean: Float[np.ndarray, " timed_passes"],
     commanded_speed: float,
     rng: np.random.Generator | None = None,
     n_boot: int = N_BOOT,
@@ -207,7 +207,8 @@ def path_statistics(
     """AT/RT (position, a/b/c, single angle) and AV/RV of one path from the attained
     poses where each pass crosses the normal planes (NaN where a pass misses a plane;
     planes crossed by fewer than two passes are left out) and the mean steady speed of
-    each pass [m/s]. Returns the `PathCharacteristics` fields and their 95 % intervals.
+    each pass that has steady frames [m/s]. Returns the `PathCharacteristics` fields and
+    their 95 % intervals.
     """
     rng = np.random.default_rng(0) if rng is None else rng
     valid = np.all(np.isfinite(x), axis=2)  # (passes, planes)
