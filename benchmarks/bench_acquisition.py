@@ -29,7 +29,7 @@ import numpy as np
 
 from acquisition import protocol as proto
 from acquisition.recorder import FrameWriter
-from robtraj.recording import Recording, write_recording
+from robtraj.recording import Recording, RecordingAppender, write_recording
 
 M = 18
 
@@ -63,10 +63,22 @@ def _stream(n: int) -> bytes:
     return b"".join(parts)
 
 
-def _decode_and_write(chunks, path, compression, threaded, write_interval):
+class _FilterPipelineAppender(RecordingAppender):
+    """The previous writer: h5py's own shuffle+gzip filter pipeline, in the calling thread."""
+
+    def __init__(self, *a, **kw) -> None:
+        super().__init__(*a, **kw)
+        if self._pool is not None:
+            self._pool.shutdown()
+        self._tail, self._pool = {}, None
+
+
+def _decode_and_write(chunks, path, compression, write_interval, appender_factory):
     dec = proto.Decoder()
-    writer = FrameWriter(path, led_set_seconds=0.5, compression=compression, threaded=threaded)
-    t0, c0 = time.perf_counter(), time.process_time()
+    writer = FrameWriter(
+        path, led_set_seconds=0.5, compression=compression, appender_factory=appender_factory
+    )
+    t0, c0, r0 = time.perf_counter(), time.process_time(), time.thread_time()
     last_write = t0
     for c in chunks:
         for ev in dec.feed(c):
@@ -78,47 +90,59 @@ def _decode_and_write(chunks, path, compression, threaded, write_interval):
         if now - last_write >= write_interval:  # as the recorder: append + flush on a clock
             writer.write()
             last_write = now
+    reader = time.thread_time() - r0
     writer.close()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return writer.counters["written"], wall, cpu
+    return writer.counters["written"], wall, cpu, reader
+
+
+DESIGNS = {"current": RecordingAppender, "previous": _FilterPipelineAppender}
 
 
 def throughput(
     n: int, tmp: Path, compression: str | None = "gzip", write_interval: float = 0.5
 ) -> dict:
-    """Frames/s through decoder + writer: the writer thread against writing in the reading
-    thread (the previous recorder), best of 3 each, wall clock and process CPU time."""
+    """Frames/s through the decoder alone and through decoder + writer thread, for the
+    current appender and the previous one (h5py's filter pipeline), best of 3 each:
+    wall clock, process CPU time (all threads) and CPU time of the reading thread."""
     data = _stream(n)
     chunks = [data[k : k + 65536] for k in range(0, len(data), 65536)]
-    best_decode = 0.0
-    best = {True: (0.0, 0.0), False: (0.0, 0.0)}  # threaded -> (wall, cpu) frames/s
+    decode = {"wall": 0.0, "cpu": 0.0}
+    best = {d: {"wall": 0.0, "cpu": 0.0, "reading_thread_cpu": 0.0} for d in DESIGNS}
+    sizes = {}
     for rep in range(3):
         dec = proto.Decoder()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for c in chunks:
             dec.feed(c)
-        best_decode = max(best_decode, n / (time.perf_counter() - t0))
-        for threaded in (False, True):
-            path = tmp / f"bench-{compression}-{threaded}-{rep}.h5"
-            written, wall, cpu = _decode_and_write(
-                chunks, path, compression, threaded, write_interval
+        decode["wall"] = max(decode["wall"], n / (time.perf_counter() - t0))
+        decode["cpu"] = max(decode["cpu"], n / (time.process_time() - c0))
+        for design, factory in DESIGNS.items():
+            path = tmp / f"bench-{compression}-{design}-{rep}.h5"
+            written, wall, cpu, reader = _decode_and_write(
+                chunks, path, compression, write_interval, factory
             )
             assert written == n
-            w, c = best[threaded]
-            best[threaded] = (max(w, n / wall), max(c, n / cpu))
+            b = best[design]
+            b["wall"] = max(b["wall"], n / wall)
+            b["cpu"] = max(b["cpu"], n / cpu)
+            b["reading_thread_cpu"] = max(b["reading_thread_cpu"], n / reader)
+            sizes[design] = path.stat().st_size
             path.unlink()
+    cur, prev = best["current"], best["previous"]
     return {
         "frames": n,
         "leds": M,
         "bytes_per_frame": (len(data) - 9) / n,
         "compression": compression,
-        "decode_frames_per_s": best_decode,
-        "decode_and_write_frames_per_s": best[True][0],
-        "decode_and_write_cpu_frames_per_s": best[True][1],
-        "writer_in_reading_thread_frames_per_s": best[False][0],
-        "writer_in_reading_thread_cpu_frames_per_s": best[False][1],
-        "speedup_writer_thread": best[True][0] / best[False][0],
-        "x_device_rate_1000hz": best[True][0] / 1000.0,
+        "decode_frames_per_s": decode,
+        "decode_and_write_frames_per_s": cur,
+        "previous_writer_frames_per_s": prev,
+        "ratio_vs_previous": {k: cur[k] / prev[k] for k in cur},
+        "file_bytes_per_frame": {d: sizes[d] / n for d in DESIGNS},
+        "x_device_rate_1000hz_cpu": cur["cpu"] / 1000.0,
+        "x_device_rate_1000hz_wall": cur["wall"] / 1000.0,
+        "load_average_1_5_15": os.getloadavg(),
     }
 
 
@@ -200,9 +224,11 @@ def main() -> int:
             print(json.dumps(r, indent=1), flush=True)
         result["recorder_load"] = recorder_load(args.seconds, tmp)
         print(json.dumps(result["recorder_load"], indent=1))
-    x = result["throughput_gzip"]["x_device_rate_1000hz"]
+    x = result["throughput_gzip"]["x_device_rate_1000hz_cpu"]
     result["target"] = {
-        "x_device_rate_gzip": x,
+        "asserted": "frames per process CPU-second (all threads), gzip, / 1000 Hz",
+        "x_device_rate_gzip_cpu": x,
+        "x_device_rate_gzip_wall": result["throughput_gzip"]["x_device_rate_1000hz_wall"],
         "required": TARGET_X,
         "met": x >= TARGET_X,
         "cpu_cores": os.cpu_count(),
@@ -214,7 +240,7 @@ def main() -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))
     if x < TARGET_X:
-        print(f"target missed: {x:.0f}x real time with gzip, need {TARGET_X:.0f}x", file=sys.stderr)
+        print(f"target missed: {x:.0f}x real time with gzip (CPU time), need {TARGET_X:.0f}x", file=sys.stderr)
         return 1
     return 0
 
