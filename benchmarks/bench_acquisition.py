@@ -240,7 +240,10 @@ def main() -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))
     if x < TARGET_X:
-        print(f"target missed: {x:.0f}x real time with gzip (CPU time), need {TARGET_X:.0f}x", file=sys.stderr)
+        print(
+            f"target missed: {x:.0f}x real time with gzip (CPU time), need {TARGET_X:.0f}x",
+            file=sys.stderr,
+        )
         return 1
     return 0
 
