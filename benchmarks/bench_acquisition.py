@@ -7,8 +7,13 @@
    writer (`acquisition.recorder.FrameWriter`, appending and flushing every 0.5 s as the
    recorder does), with each `--compression` of the recorder: gzip (default), lzf, none.
    Target: >= 100x the device's 1000 Hz, i.e. 100 000 frames/s, with gzip (asserted: exit 1
-   when missed). Each is measured with the writer thread (the recorder) and with writing in
-   the reading thread (as before), wall clock and process CPU time, with the load average.
+   when missed) on the process CPU-time rate: frames per CPU-second summed over all
+   threads (reading thread, writer thread, compression pool). That is the rate one core
+   sustains however the scheduler shares a busy machine; the wall-clock rate on a shared
+   machine measures the share of the CPU the benchmark got, not the recorder. The wall rate
+   and the reading thread's own CPU rate are reported beside it, with the load average.
+   The current writer is compared, in the same run, with the previous one (np.stack
+   packing, h5py's filter pipeline compressing in the writer thread under the GIL).
 2. Recorder load: `robtraj emulate` streams S seconds at 1000 Hz over a loopback socket to
    `robtraj record`; the recorder's CPU time is read from /proc/PID/stat while it records
    (start-up excluded) and divided by the wall time: the share of one core it needs.
@@ -29,7 +34,8 @@ import numpy as np
 
 from acquisition import protocol as proto
 from acquisition.recorder import FrameWriter
-from robtraj.recording import Recording, write_recording
+from robtraj import recording
+from robtraj.recording import Recording, RecordingAppender, write_recording
 
 M = 18
 
@@ -63,10 +69,66 @@ def _stream(n: int) -> bytes:
     return b"".join(parts)
 
 
-def _decode_and_write(chunks, path, compression, threaded, write_interval):
+class _FilterPipelineAppender(RecordingAppender):
+    """The previous writer: h5py's own shuffle+gzip filter pipeline, in the calling thread."""
+
+    def __init__(self, *a, **kw) -> None:
+        super().__init__(*a, **kw)
+        if self._pool is not None:
+            self._pool.shutdown()
+        self._tail, self._pool = {}, None
+
+
+class _StackingFrameWriter(FrameWriter):
+    """The previous packing: one `np.stack` per array over the frames' small arrays."""
+
+    def _pack(self, items):
+        k, m = len(items), int(self.led_ids.shape[0])
+        frames = [it[2] for it in items]
+        if not all(fr.led_ids.shape[0] == m for fr in frames):
+            return super()._pack(items)
+        ids = np.stack([fr.led_ids for fr in frames])
+        if not np.all(ids == self.led_ids):
+            return super()._pack(items)
+        return (
+            np.fromiter((it[1] for it in items), np.float64, k),
+            np.fromiter((it[0] for it in items), np.uint64, k),
+            np.stack([fr.positions for fr in frames]),
+            np.stack([fr.status for fr in frames]).astype(np.uint8),
+            np.fromiter((it[3] for it in items), np.float32, k),
+        )
+
+
+_COMPRESS_CPU: list[float] = []  # CPU seconds of each chunk compression in the pool
+_shuffle_deflate = recording._shuffle_deflate
+
+
+def _timed_shuffle_deflate(chunk):
+    t = time.thread_time()
+    blob = _shuffle_deflate(chunk)
+    _COMPRESS_CPU.append(time.thread_time() - t)  # list.append is atomic under the GIL
+    return blob
+
+
+recording._shuffle_deflate = _timed_shuffle_deflate  # the pool looks the name up per call
+
+
+# writer class, appender: the current design and the previous one (np.stack packing, h5py's
+# filter pipeline compressing in the writer thread while holding the GIL)
+DESIGNS = {
+    "current": (FrameWriter, RecordingAppender),
+    "previous": (_StackingFrameWriter, _FilterPipelineAppender),
+}
+
+
+def _decode_and_write(chunks, path, compression, write_interval, design):
     dec = proto.Decoder()
-    writer = FrameWriter(path, led_set_seconds=0.5, compression=compression, threaded=threaded)
-    t0, c0 = time.perf_counter(), time.process_time()
+    writer_cls, appender_factory = DESIGNS[design]
+    writer = writer_cls(
+        path, led_set_seconds=0.5, compression=compression, appender_factory=appender_factory
+    )
+    _COMPRESS_CPU.clear()
+    t0, c0, r0 = time.perf_counter(), time.process_time(), time.thread_time()
     last_write = t0
     for c in chunks:
         for ev in dec.feed(c):
@@ -78,47 +140,67 @@ def _decode_and_write(chunks, path, compression, threaded, write_interval):
         if now - last_write >= write_interval:  # as the recorder: append + flush on a clock
             writer.write()
             last_write = now
+    reader = time.thread_time() - r0
     writer.close()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return writer.counters["written"], wall, cpu
+    return writer.counters["written"], wall, cpu, reader, sum(_COMPRESS_CPU)
 
 
 def throughput(
     n: int, tmp: Path, compression: str | None = "gzip", write_interval: float = 0.5
 ) -> dict:
-    """Frames/s through decoder + writer: the writer thread against writing in the reading
-    thread (the previous recorder), best of 3 each, wall clock and process CPU time."""
+    """Frames/s through the decoder alone and through decoder + writer thread, for the
+    current appender and the previous one (h5py's filter pipeline), best of 3 each:
+    wall clock, process CPU time (all threads) and CPU time of the reading thread."""
     data = _stream(n)
     chunks = [data[k : k + 65536] for k in range(0, len(data), 65536)]
-    best_decode = 0.0
-    best = {True: (0.0, 0.0), False: (0.0, 0.0)}  # threaded -> (wall, cpu) frames/s
+    decode = {"wall": 0.0, "cpu": 0.0}
+    best = {d: {"wall": 0.0, "cpu": 0.0, "reading_thread_cpu": 0.0} for d in DESIGNS}
+    split = {}  # CPU µs per frame of the current design's best CPU run
+    sizes = {}
     for rep in range(3):
         dec = proto.Decoder()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for c in chunks:
             dec.feed(c)
-        best_decode = max(best_decode, n / (time.perf_counter() - t0))
-        for threaded in (False, True):
-            path = tmp / f"bench-{compression}-{threaded}-{rep}.h5"
-            written, wall, cpu = _decode_and_write(
-                chunks, path, compression, threaded, write_interval
+        decode["wall"] = max(decode["wall"], n / (time.perf_counter() - t0))
+        decode["cpu"] = max(decode["cpu"], n / (time.process_time() - c0))
+        for design in DESIGNS:
+            path = tmp / f"bench-{compression}-{design}-{rep}.h5"
+            written, wall, cpu, reader, pool = _decode_and_write(
+                chunks, path, compression, write_interval, design
             )
             assert written == n
-            w, c = best[threaded]
-            best[threaded] = (max(w, n / wall), max(c, n / cpu))
+            b = best[design]
+            if design == "current" and n / cpu > b["cpu"]:
+                split = {
+                    "reading_thread": 1e6 * reader / n,
+                    "compression_pool": 1e6 * pool / n,
+                    "writer_thread_and_rest": 1e6 * (cpu - reader - pool) / n,
+                    # all but the compression holds the GIL: on two free cores at best
+                    # max(GIL-held work, all work / 2) per frame (an estimate)
+                    "two_core_estimate_frames_per_s": n / max(cpu - pool, cpu / 2),
+                }
+            b["wall"] = max(b["wall"], n / wall)
+            b["cpu"] = max(b["cpu"], n / cpu)
+            b["reading_thread_cpu"] = max(b["reading_thread_cpu"], n / reader)
+            sizes[design] = path.stat().st_size
             path.unlink()
+    cur, prev = best["current"], best["previous"]
     return {
         "frames": n,
         "leds": M,
         "bytes_per_frame": (len(data) - 9) / n,
         "compression": compression,
-        "decode_frames_per_s": best_decode,
-        "decode_and_write_frames_per_s": best[True][0],
-        "decode_and_write_cpu_frames_per_s": best[True][1],
-        "writer_in_reading_thread_frames_per_s": best[False][0],
-        "writer_in_reading_thread_cpu_frames_per_s": best[False][1],
-        "speedup_writer_thread": best[True][0] / best[False][0],
-        "x_device_rate_1000hz": best[True][0] / 1000.0,
+        "decode_frames_per_s": decode,
+        "decode_and_write_frames_per_s": cur,
+        "previous_writer_frames_per_s": prev,
+        "ratio_vs_previous": {k: cur[k] / prev[k] for k in cur},
+        "cpu_us_per_frame_current": split,
+        "file_bytes_per_frame": {d: sizes[d] / n for d in DESIGNS},
+        "x_device_rate_1000hz_cpu": cur["cpu"] / 1000.0,
+        "x_device_rate_1000hz_wall": cur["wall"] / 1000.0,
+        "load_average_1_5_15": os.getloadavg(),
     }
 
 
@@ -200,9 +282,11 @@ def main() -> int:
             print(json.dumps(r, indent=1), flush=True)
         result["recorder_load"] = recorder_load(args.seconds, tmp)
         print(json.dumps(result["recorder_load"], indent=1))
-    x = result["throughput_gzip"]["x_device_rate_1000hz"]
+    x = result["throughput_gzip"]["x_device_rate_1000hz_cpu"]
     result["target"] = {
-        "x_device_rate_gzip": x,
+        "asserted": "frames per process CPU-second (all threads), gzip, / 1000 Hz",
+        "x_device_rate_gzip_cpu": x,
+        "x_device_rate_gzip_wall": result["throughput_gzip"]["x_device_rate_1000hz_wall"],
         "required": TARGET_X,
         "met": x >= TARGET_X,
         "cpu_cores": os.cpu_count(),
@@ -214,7 +298,10 @@ def main() -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))
     if x < TARGET_X:
-        print(f"target missed: {x:.0f}x real time with gzip, need {TARGET_X:.0f}x", file=sys.stderr)
+        print(
+            f"target missed: {x:.0f}x real time with gzip (CPU time), need {TARGET_X:.0f}x",
+            file=sys.stderr,
+        )
         return 1
     return 0
 
