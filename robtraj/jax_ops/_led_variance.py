@@ -51,8 +51,10 @@ def led_variance(
     than `min_count` valid frames are in its window (for ``"pairwise"``: no partner has).
 
     Cost O(frames · leds²) time, independent of the window length (block-local prefix
-    sums, see `windowed_moments`), and O(frames · leds) memory (a scan over groups of
-    LED pairs). Frame-sharded inputs work (XLA inserts the collectives).
+    sums, see `windowed_moments`), and O(frames · leds) memory: the frames are processed
+    in chunks of a few thousand (each with a halo of half a window), so the
+    (frames, pairs) distances exist for one chunk at a time. Frame-sharded inputs work
+    (XLA inserts the collectives) and give bitwise the same result.
 
     Precision: float64 agrees with a direct two-pass evaluation to ~1e-12 relative on
     0.1 m constellations with 15 µm noise (the rounding of the distances themselves,
@@ -94,15 +96,9 @@ def _chunks(x: Array, half_width: int, chunk: int) -> Array:
     return jnp.concatenate([left, main, right], axis=1)
 
 
-def _pairs(n_leds: int) -> tuple[np.ndarray, np.ndarray]:
-    """LED pairs (a, b), a < b, ordered by offset b - a: the order of `_pair_distances`."""
-    a = np.concatenate([np.arange(n_leds - k) for k in range(1, n_leds)])
-    b = np.concatenate([np.arange(k, n_leds) for k in range(1, n_leds)])
-    return a, b
-
-
 def _pair_distances(x: Array, seen: Array) -> tuple[Array, Array]:
-    """Distances (frames, pairs) of the pairs of `_pairs`, and where both are seen.
+    """Distances (frames, pairs) and where both LEDs are seen, for the LED pairs
+    (a, a + k) ordered by offset k = 1 .. leds-1, then by a.
 
     Built from shifted slices (LED a against LED a + k), not gathers: XLA's gather is
     slow on CPU.
@@ -126,44 +122,38 @@ def _led_variance(positions: Array, half_width: int, variant: str, min_count: in
     n, n_leds, _ = positions.shape
     h = half_width
     chunk = max(_CHUNK, h)
-    a_idx, b_idx = _pairs(n_leds)
-    # incidence (pairs, leds): sums over the pairs of each LED as one exact matmul
-    incidence = jnp.asarray(
-        (a_idx[:, None] == np.arange(n_leds)) | (b_idx[:, None] == np.arange(n_leds)), dtype
-    )
-    hp = jax.lax.Precision.HIGHEST
 
-    def to_leds(v):  # (frames, pairs) -> (frames, leds): Σ over the pairs of each LED
-        return jnp.matmul(v, incidence, precision=hp)
+    # pairs (a, a + k) in the order of `_pair_distances`; incidence (pairs, leds)
+    pair_a = np.concatenate([np.arange(n_leds - k) for k in range(1, n_leds)])
+    pair_b = np.concatenate([np.arange(k, n_leds) for k in range(1, n_leds)])
+    leds = np.arange(n_leds)
+    incidence = jnp.asarray((pair_a[:, None] == leds) | (pair_b[:, None] == leds), dtype)
+
+    def to_leds(v):
+        """(..., pairs) -> (..., leds): for each LED the sum over the pairs it is in, as
+        one matmul (exact: at most leds - 1 non-zero terms; HIGHEST keeps float32 out of
+        reduced-precision GPU matmuls). XLA's scatter is slow on CPU."""
+        return jnp.matmul(v, incidence, precision=jax.lax.Precision.HIGHEST)
 
     def prepare(x):
         seen = jnp.all(jnp.isfinite(x), axis=-1)
         return jnp.where(seen[..., None], x, 0.0), seen
 
     if variant == "paper":
-        # Per-pair reference distance ref_ab: d = e + r with r = Σ_b ref_ab piecewise
-        # constant (it changes only when partners come and go) and e small. ref_ab is the
-        # distance at the first frame where both are seen: exact and independent of how
-        # the frames are split into chunks or across devices (a mean would not be).
-        def first_in_chunk(xc):
-            x, seen = prepare(xc)
-            dist, both = _pair_distances(x, seen)
-            first = jnp.argmax(both, axis=0)
-            return jnp.take_along_axis(dist, first[None], axis=0)[0], jnp.any(both, axis=0)
-
-        ref_c, any_c = jax.lax.map(first_in_chunk, _chunks(positions, 0, chunk))
-        ref = jnp.take_along_axis(ref_c, jnp.argmax(any_c, axis=0)[None], axis=0)[0]
-        ref = jax.lax.stop_gradient(ref)  # a constant shift: no derivative
 
         def paper_chunk(xc):
             x, seen = prepare(xc)
             dist, both = _pair_distances(x, seen)
+            # Per-pair reference distance ref_ab: d = e + r with r = Σ_b ref_ab piecewise
+            # constant (it changes only when partners come and go) and e small. ref_ab is
+            # the distance at the first frame of the chunk (halo included) where both are
+            # seen: every window lies inside one chunk, and the chunks do not depend on
+            # how the frames are split across devices.
+            first = jnp.argmax(both, axis=0)
+            ref = jax.lax.stop_gradient(jnp.take_along_axis(dist, first[None], axis=0))
             bw = both.astype(dtype)
             # paper eq. 4: d = sum over the partners seen at t; also e, r, partner count
-            d = to_leds(dist)
-            e = to_leds(jnp.where(both, dist - ref, 0.0))
-            r = to_leds(bw * ref)
-            k = to_leds(bw)
+            d, e, r, k = to_leds(jnp.stack([dist, jnp.where(both, dist - ref, 0.0), bw * ref, bw]))
             ok = seen & (k > 0)
             count, _, m2 = windowed_moments(
                 jnp.concatenate([d, e], axis=1), jnp.tile(ok, (1, 2)), h
@@ -188,7 +178,7 @@ def _led_variance(positions: Array, half_width: int, variant: str, min_count: in
             count, _, m2 = windowed_moments(dist, both, h)
             use = count >= min_count
             var = jnp.where(use, m2 / jnp.where(use, count, 1.0), 0.0)
-            total, n_use = to_leds(var), to_leds(use.astype(dtype))
+            total, n_use = to_leds(jnp.stack([var, use.astype(dtype)]))
             mean = total / jnp.where(n_use > 0, n_use, 1.0)
             return jnp.where(seen & (n_use > 0), mean, jnp.nan)[h : h + chunk]
 
