@@ -59,7 +59,7 @@ def led_variance(
     Precision: float64 agrees with a direct two-pass evaluation to ~1e-12 relative on
     0.1 m constellations with 15 µm noise (the rounding of the distances themselves,
     1 ulp of 0.1 m against ~20 µm noise, sets that floor). For the paper variant ``d_t``
-    is split into a piecewise-constant part (the sum of per-pair mean distances over the
+    is split into a piecewise-constant part (the sum of per-pair reference distances over the
     partners seen) and a small remainder; where the partner set does not change within
     the window the variance is that of the remainder, so the jumps of ``d_t`` elsewhere
     cost no precision. In float32 the positions themselves carry ~0.1 µm rounding at

@@ -90,7 +90,21 @@ def weighted_procrustes(
     if weights.shape != measured.shape[:2]:
         raise ValueError(f"weights {weights.shape} do not match measured {measured.shape}")
     dtype = jnp.result_type(model, measured, weights)
-    return _weighted_procrustes(model.astype(dtype), measured.astype(dtype), weights.astype(dtype))
+    model, measured, weights = model.astype(dtype), measured.astype(dtype), weights.astype(dtype)
+    # Pad the frames to a power of two (weight 0: invalid frames, cut off again), so
+    # callers with varying frame counts reuse a few compiled kernels.
+    n = measured.shape[0]
+    padded = max(8, 1 << max(n - 1, 0).bit_length())
+    if padded == n:
+        return _weighted_procrustes(model, measured, weights)
+
+    def pad(a):
+        return jnp.pad(a, [(0, padded - n)] + [(0, 0)] * (a.ndim - 1))
+
+    if model.ndim == 3:
+        model = pad(model)
+    fit = _weighted_procrustes(model, pad(measured), pad(weights))
+    return jax.tree.map(lambda a: a[:n], fit)
 
 
 # Newton steps on the quartic (λ1) and on the deflated cubic (λ2, for the gap) and on the
