@@ -21,10 +21,12 @@ class RigidFit(eqx.Module):
       `valid`.
     - `n_used`: `(frames,)` number of LEDs with weight > 0 and finite measurement.
     - `valid`: `(frames,)` at least 3 LEDs used and the geometry is not (nearly) collinear.
-    - `condition`: `(frames,)` in [0, 1]: the smaller of (a) the ratio of the second to
-      the largest eigenvalue of the weighted model scatter and (b) the relative gap of
-      the two largest eigenvalues of Horn's matrix. Near 0 means (nearly) collinear
-      LEDs, where the rotation about the line is undetermined.
+    - `condition`: `(frames,)` in [0, 1]: the smaller of (a) the ratio e2/e1 of the
+      second to the largest eigenvalue of the weighted model scatter and (b) the
+      relative gap (λ1 - λ2)/λ1 of the two largest eigenvalues of Horn's matrix. Near 0
+      means (nearly) collinear LEDs, where the rotation about the line is undetermined.
+      Exact to first order near 0, where it decides `valid`; for well-spread LEDs (a)
+      may be a few per cent low and (b) is a lower bound. No gradient.
     """
 
     quaternion_wxyz: Float[Array, "frames 4"]
