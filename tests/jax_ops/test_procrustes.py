@@ -306,3 +306,41 @@ def test_blocks_of_a_long_recording_match_eigen_solver():
     np.testing.assert_allclose(r, r_ref, atol=1e-10)
     np.testing.assert_allclose(np.asarray(fit.position)[ok], p_ref[ok], atol=1e-10)
     np.testing.assert_allclose(np.asarray(fit.rms)[ok], rms[ok], rtol=1e-8)
+
+
+def test_condition_against_eigenvalues():
+    """`condition` = min(e2/e1 of the model scatter, (λ1 - λ2)/λ1 of Horn's matrix),
+    from dense eigenvalues: within 5 % where it is >= 0.01, and to 1e-6 relative near
+    collinearity (offsets 1e-3 .. 1e-1 of the line length), where it decides validity."""
+    rng = np.random.default_rng(40)
+    n, m = 40, 8
+    model = np.broadcast_to(0.1 * rng.normal(size=(m, 3)), (n, m, 3)).copy()
+    line = rng.normal(size=3)
+    off = 10.0 ** rng.uniform(-3, -1, size=(n // 2, 1, 1))
+    model[: n // 2] = np.linspace(0, 0.2, m)[:, None] * line + off * rng.normal(size=(m, 3))
+    rot = Rotation.random(n, random_state=4).as_matrix()
+    measured = np.einsum("nij,nmj->nmi", rot, model) + 1.0
+    measured += 1e-3 * rng.normal(size=measured.shape)
+    weights = rng.uniform(0.5, 2.0, size=(n, m))
+    fit = weighted_procrustes(jnp.asarray(model), jnp.asarray(measured), jnp.asarray(weights))
+    want = np.empty(n)
+    for i in range(n):
+        w = weights[i] / weights[i].sum()
+        pc, yc = model[i] - w @ model[i], measured[i] - w @ measured[i]
+        e = np.linalg.eigvalsh(np.einsum("k,ki,kj->ij", w, pc, pc))
+        (sxx, sxy, sxz), (syx, syy, syz), (szx, szy, szz) = np.einsum("k,ki,kj->ij", w, pc, yc)
+        horn = np.array(
+            [
+                [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+                [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+                [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+                [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+            ]
+        )
+        lam = np.linalg.eigvalsh(horn)
+        want[i] = min(e[1] / e[2], (lam[3] - lam[2]) / lam[3])
+    got = np.asarray(fit.condition)
+    big = want >= 0.01
+    assert big.sum() >= n // 2 and (~big).sum() >= 5
+    np.testing.assert_allclose(got[big], want[big], rtol=0.05)
+    np.testing.assert_allclose(got[~big], want[~big], rtol=1e-6)
