@@ -20,8 +20,10 @@ read increments), ``tracemalloc`` peak for the NumPy paths, and the device's
 
 The NumPy LED-variance reference sums ``d_t`` in plain float64 and uses the two-pass
 variance; its own rounding (~eps · |d_t| against ~60 µm noise of ``d_t``) limits the
-agreement for the paper variant to ~1e-10 relative. The test suite checks the kernel
-against an extended-precision loop to ~1e-12.
+agreement for the paper variant to ~1e-10 relative. The same NumPy code run in extended
+precision (``np.longdouble``) on the first ``--ext-frames`` frames is the reference for
+the 1e-10 equality target; both differences are reported. The test suite checks the
+kernel against an extended-precision loop to ~1e-12.
 """
 
 from __future__ import annotations
@@ -71,20 +73,21 @@ def numpy_led_variance(positions: np.ndarray, window: int, variant: str, min_cou
     bound memory at O(N·M)."""
     n, m, _ = positions.shape
     h = window // 2
+    dt = positions.dtype  # float64; np.longdouble for the extended-precision check
     seen = np.all(np.isfinite(positions), axis=-1)
-    out = np.full((n, m), np.nan)
+    out = np.full((n, m), np.nan, dt)
 
     def windowed_var(x, ok):
         # x, ok: (n, k); windowed population variance over valid frames
         cnt = np.zeros(x.shape)
-        s1 = np.zeros(x.shape)
+        s1 = np.zeros(x.shape, dt)
         xz = np.where(ok, x, 0.0)
         for k in range(-h, h + 1):
             lo, hi = max(0, -k), min(n, n - k)
             cnt[lo:hi] += ok[lo + k : hi + k]
             s1[lo:hi] += xz[lo + k : hi + k]
         mean = s1 / np.maximum(cnt, 1)
-        s2 = np.zeros(x.shape)
+        s2 = np.zeros(x.shape, dt)
         for k in range(-h, h + 1):
             lo, hi = max(0, -k), min(n, n - k)
             dev = np.where(ok[lo + k : hi + k], xz[lo + k : hi + k] - mean[lo:hi], 0.0)
@@ -92,7 +95,7 @@ def numpy_led_variance(positions: np.ndarray, window: int, variant: str, min_cou
         return cnt, s2 / np.maximum(cnt, 1)
 
     if variant == "paper":
-        d = np.zeros((n, m))
+        d = np.zeros((n, m), dt)
         okd = np.zeros((n, m), bool)
         for a in range(m):
             both = seen & seen[:, a : a + 1]
@@ -174,6 +177,9 @@ def main(argv=None) -> int:
     ap.add_argument("--window", type=int, default=21, help="LED variance window [frames]")
     ap.add_argument("--occlusion", type=float, default=0.3)
     ap.add_argument("--scipy-frames", type=int, default=2000, help="subset for the scipy loop")
+    ap.add_argument(
+        "--ext-frames", type=int, default=10000, help="subset for the extended-precision check"
+    )
     ap.add_argument("--dtype", choices=["float64", "float32"], default="float64")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--json", metavar="OUT", help="write the results as JSON")
@@ -280,6 +286,25 @@ def main(argv=None) -> int:
         result[f"led_variance_{variant}_nan_pattern_equal"] = bool(
             np.array_equal(np.isnan(v), np.isnan(v_np))
         )
+        # The float64 NumPy reference rounds d_t (~eps·|d_t| against ~60 µm noise), so
+        # the agreement with it is limited by the reference itself. The same direct
+        # NumPy code in extended precision (np.longdouble) on the first frames decides
+        # which side is off; the 1e-10 target is checked against it.
+        k = min(args.ext_frames, n)
+        h = args.window // 2
+        v_ext = numpy_led_variance(pos[:k].astype(np.longdouble), args.window, variant, min_count)
+        inner = slice(0, k - h)  # windows entirely inside the first k frames
+        fin = np.isfinite(v_ext[inner]) & np.isfinite(v[inner])
+
+        def rel(a, b, fin=fin):
+            a, b = np.asarray(a[inner][fin], np.longdouble), b[inner][fin]
+            return float(np.max(np.abs(a - b) / np.abs(b)))
+
+        result[f"led_variance_{variant}_max_rel_diff_vs_extended"] = rel(v, v_ext)
+        result[f"numpy_{variant}_max_rel_diff_vs_extended"] = rel(v_np, v_ext)
+        result[f"led_variance_{variant}_nan_pattern_equal_extended"] = bool(
+            np.array_equal(np.isnan(v[inner]), np.isnan(v_ext[inner]))
+        )
 
     try:
         stats = device.memory_stats()
@@ -294,9 +319,13 @@ def main(argv=None) -> int:
         "led_variance_paper_speedup": result["led_variance_paper_speedup"] >= 10.0,
         "led_variance_pairwise_speedup": result["led_variance_pairwise_speedup"] >= 10.0,
         "procrustes_equal_1e-10": result["procrustes_max_abs_diff_vs_numpy"] <= 1e-10,
-        "led_variance_paper_equal_1e-10": result["led_variance_paper_max_rel_diff"] <= 1e-10
+        "led_variance_paper_equal_1e-10": result["led_variance_paper_max_rel_diff_vs_extended"]
+        <= 1e-10
         and result["led_variance_paper_nan_pattern_equal"],
-        "led_variance_pairwise_equal_1e-10": result["led_variance_pairwise_max_rel_diff"] <= 1e-10
+        "led_variance_pairwise_equal_1e-10": result[
+            "led_variance_pairwise_max_rel_diff_vs_extended"
+        ]
+        <= 1e-10
         and result["led_variance_pairwise_nan_pattern_equal"],
     }
     if args.dtype != "float64":  # the equality targets are for float64
@@ -311,7 +340,7 @@ def main(argv=None) -> int:
     for name, sec, fps, _ in rows:
         print(f"{name:58s} {sec:10.3f} {fps:12.3g}")
     for key in sorted(result):
-        if key.endswith(("_compile_s", "_mb", "_speedup", "_diff", "_equal")):
+        if key.endswith(("_compile_s", "_mb", "_speedup", "_diff", "_equal", "_extended")):
             val = result[key]
             print(f"  {key}: {val:.4g}" if isinstance(val, float) else f"  {key}: {val}")
     print(

@@ -93,10 +93,11 @@ def weighted_procrustes(
         raise ValueError(f"weights {weights.shape} do not match measured {measured.shape}")
     dtype = jnp.result_type(model, measured, weights)
     model, measured, weights = model.astype(dtype), measured.astype(dtype), weights.astype(dtype)
-    # Pad the frames to a power of two (weight 0: invalid frames, cut off again), so
-    # callers with varying frame counts reuse a few compiled kernels.
+    # Pad the frames to one block or a power of two (weight 0: invalid frames, cut off
+    # again), so callers with varying frame counts (e.g. one call per static segment)
+    # reuse a few compiled kernels; a block of frames costs far less than a compilation.
     n = measured.shape[0]
-    padded = max(8, 1 << max(n - 1, 0).bit_length())
+    padded = max(_BLOCK, 1 << max(n - 1, 0).bit_length())
     if padded == n:
         return _weighted_procrustes(model, measured, weights)
 
