@@ -1,9 +1,15 @@
 """Benchmark of the robtraj.jax_ops kernels against NumPy/SciPy implementations.
 
 Plain script (not collected by pytest). Runs on whatever JAX's default backend is
-(CPU or GPU). Example::
+(CPU or GPU). Example (the CPU targets; exits 1 when one is missed)::
 
-    python benchmarks/bench_kernels.py --frames 200000 --leds 18 --json bench.json
+    python benchmarks/bench_kernels.py --frames 200000 --leds 18 \
+        --json benchmarks/results/kernels_cpu.json
+
+Targets, as ratios to the NumPy way measured in the same run: weighted Procrustes
+>= 5x NumPy batched SVD, LED variance (paper and pairwise) >= 10x NumPy direct; results
+equal to those references to 1e-10 relative (float64). The load average of the machine
+is recorded beside the figures: the ratios are only meaningful on a quiet machine.
 
 Synthetic data: an 18-LED hemispherical tool (0.1 m radius) moving smoothly, 15 µm
 noise, ~30 % occlusion in runs. Timings are wall-clock, JAX results after warm-up and
@@ -14,8 +20,10 @@ read increments), ``tracemalloc`` peak for the NumPy paths, and the device's
 
 The NumPy LED-variance reference sums ``d_t`` in plain float64 and uses the two-pass
 variance; its own rounding (~eps · |d_t| against ~60 µm noise of ``d_t``) limits the
-agreement for the paper variant to ~1e-10 relative. The test suite checks the kernel
-against an extended-precision loop to ~1e-12.
+agreement for the paper variant to ~1e-10 relative. The same NumPy code run in extended
+precision (``np.longdouble``) on the first ``--ext-frames`` frames is the reference for
+the 1e-10 equality target; both differences are reported. The test suite checks the
+kernel against an extended-precision loop to ~1e-12.
 """
 
 from __future__ import annotations
@@ -65,20 +73,21 @@ def numpy_led_variance(positions: np.ndarray, window: int, variant: str, min_cou
     bound memory at O(N·M)."""
     n, m, _ = positions.shape
     h = window // 2
+    dt = positions.dtype  # float64; np.longdouble for the extended-precision check
     seen = np.all(np.isfinite(positions), axis=-1)
-    out = np.full((n, m), np.nan)
+    out = np.full((n, m), np.nan, dt)
 
     def windowed_var(x, ok):
         # x, ok: (n, k); windowed population variance over valid frames
         cnt = np.zeros(x.shape)
-        s1 = np.zeros(x.shape)
+        s1 = np.zeros(x.shape, dt)
         xz = np.where(ok, x, 0.0)
         for k in range(-h, h + 1):
             lo, hi = max(0, -k), min(n, n - k)
             cnt[lo:hi] += ok[lo + k : hi + k]
             s1[lo:hi] += xz[lo + k : hi + k]
         mean = s1 / np.maximum(cnt, 1)
-        s2 = np.zeros(x.shape)
+        s2 = np.zeros(x.shape, dt)
         for k in range(-h, h + 1):
             lo, hi = max(0, -k), min(n, n - k)
             dev = np.where(ok[lo + k : hi + k], xz[lo + k : hi + k] - mean[lo:hi], 0.0)
@@ -86,7 +95,7 @@ def numpy_led_variance(positions: np.ndarray, window: int, variant: str, min_cou
         return cnt, s2 / np.maximum(cnt, 1)
 
     if variant == "paper":
-        d = np.zeros((n, m))
+        d = np.zeros((n, m), dt)
         okd = np.zeros((n, m), bool)
         for a in range(m):
             both = seen & seen[:, a : a + 1]
@@ -168,10 +177,15 @@ def main(argv=None) -> int:
     ap.add_argument("--window", type=int, default=21, help="LED variance window [frames]")
     ap.add_argument("--occlusion", type=float, default=0.3)
     ap.add_argument("--scipy-frames", type=int, default=2000, help="subset for the scipy loop")
+    ap.add_argument(
+        "--ext-frames", type=int, default=10000, help="subset for the extended-precision check"
+    )
     ap.add_argument("--dtype", choices=["float64", "float32"], default="float64")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--json", metavar="OUT", help="write the results as JSON")
+    ap.add_argument("--no-assert", action="store_true", help="report only, exit 0")
     args = ap.parse_args(argv)
+    import os
 
     import jax
 
@@ -192,6 +206,8 @@ def main(argv=None) -> int:
         "dtype": args.dtype,
         "device": f"{device.platform}: {device.device_kind}",
         "jax": jax.__version__,
+        "load_average_at_start": list(os.getloadavg()),
+        "cpu_count": os.cpu_count(),
     }
 
     def row(name, seconds, frames, note=""):
@@ -222,10 +238,11 @@ def main(argv=None) -> int:
     result["rss_after_jax_procrustes_mb"] = maxrss_mb()
 
     tracemalloc.start()
-    t_np, (rot_np, _, _) = timed(lambda: numpy_procrustes(constellation, pos, weights), 1)
+    t_np, (rot_np, _, _) = timed(lambda: numpy_procrustes(constellation, pos, weights), 2)
     result["numpy_procrustes_tracemalloc_peak_mb"] = tracemalloc.get_traced_memory()[1] / 2**20
     tracemalloc.stop()
     row("numpy batched SVD (N,3,3)", t_np, n)
+    result["procrustes_speedup"] = t_np / steady
 
     k = min(args.scipy_frames, n)
     t_sp, rot_sp = timed(lambda: scipy_procrustes_loop(constellation, pos[:k], weights[:k]), 1)
@@ -269,6 +286,25 @@ def main(argv=None) -> int:
         result[f"led_variance_{variant}_nan_pattern_equal"] = bool(
             np.array_equal(np.isnan(v), np.isnan(v_np))
         )
+        # The float64 NumPy reference rounds d_t (~eps·|d_t| against ~60 µm noise), so
+        # the agreement with it is limited by the reference itself. The same direct
+        # NumPy code in extended precision (np.longdouble) on the first frames decides
+        # which side is off; the 1e-10 target is checked against it.
+        k = min(args.ext_frames, n)
+        h = args.window // 2
+        v_ext = numpy_led_variance(pos[:k].astype(np.longdouble), args.window, variant, min_count)
+        inner = slice(0, k - h)  # windows entirely inside the first k frames
+        fin = np.isfinite(v_ext[inner]) & np.isfinite(v[inner])
+
+        def rel(a, b, fin=fin):
+            a, b = np.asarray(a[inner][fin], np.longdouble), b[inner][fin]
+            return float(np.max(np.abs(a - b) / np.abs(b)))
+
+        result[f"led_variance_{variant}_max_rel_diff_vs_extended"] = rel(v, v_ext)
+        result[f"numpy_{variant}_max_rel_diff_vs_extended"] = rel(v_np, v_ext)
+        result[f"led_variance_{variant}_nan_pattern_equal_extended"] = bool(
+            np.array_equal(np.isnan(v[inner]), np.isnan(v_ext[inner]))
+        )
 
     try:
         stats = device.memory_stats()
@@ -277,6 +313,24 @@ def main(argv=None) -> int:
     if stats and "peak_bytes_in_use" in stats:
         result["device_peak_mb"] = stats["peak_bytes_in_use"] / 2**20
     result["rss_peak_mb"] = maxrss_mb()
+    result["load_average_at_end"] = list(os.getloadavg())
+    targets = {
+        "procrustes_speedup": result["procrustes_speedup"] >= 5.0,
+        "led_variance_paper_speedup": result["led_variance_paper_speedup"] >= 10.0,
+        "led_variance_pairwise_speedup": result["led_variance_pairwise_speedup"] >= 10.0,
+        "procrustes_equal_1e-10": result["procrustes_max_abs_diff_vs_numpy"] <= 1e-10,
+        "led_variance_paper_equal_1e-10": result["led_variance_paper_max_rel_diff_vs_extended"]
+        <= 1e-10
+        and result["led_variance_paper_nan_pattern_equal"],
+        "led_variance_pairwise_equal_1e-10": result[
+            "led_variance_pairwise_max_rel_diff_vs_extended"
+        ]
+        <= 1e-10
+        and result["led_variance_pairwise_nan_pattern_equal"],
+    }
+    if args.dtype != "float64":  # the equality targets are for float64
+        targets = {k: v for k, v in targets.items() if "equal" not in k}
+    result["targets_met"] = targets
 
     print(
         f"\n{n} frames x {m} LEDs, {result['occlusion_fraction']:.0%} occluded, "
@@ -286,13 +340,19 @@ def main(argv=None) -> int:
     for name, sec, fps, _ in rows:
         print(f"{name:58s} {sec:10.3f} {fps:12.3g}")
     for key in sorted(result):
-        if key.endswith(("_compile_s", "_mb", "_speedup", "_diff", "_equal")):
+        if key.endswith(("_compile_s", "_mb", "_speedup", "_diff", "_equal", "_extended")):
             val = result[key]
             print(f"  {key}: {val:.4g}" if isinstance(val, float) else f"  {key}: {val}")
+    print(
+        f"  load average at start {result['load_average_at_start']}, at end "
+        f"{result['load_average_at_end']} ({result['cpu_count']} CPUs)"
+    )
+    missed = [k for k, ok in targets.items() if not ok]
+    print("targets met" if not missed else f"TARGETS MISSED: {', '.join(missed)}")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(result, fh, indent=2)
-    return 0
+    return 1 if missed and not args.no_assert else 0
 
 
 if __name__ == "__main__":

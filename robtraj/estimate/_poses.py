@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -59,18 +61,69 @@ def default_window(time: np.ndarray) -> int:
     return n + (n % 2 == 0)
 
 
+def _chunk_length(n: int, chunk: int) -> int:
+    """Frames per kernel call: `chunk`, or for shorter recordings the next power of two
+    (at least 4096), so the kernels are compiled for a few shapes only."""
+    if n >= chunk:
+        return chunk
+    return min(chunk, max(4096, 1 << (n - 1).bit_length()))
+
+
+def _slab(arr: np.ndarray, start: int, size: int, halo: int, fill) -> np.ndarray:
+    """``arr[start - halo : start + size + halo]`` with `fill` beyond the ends: always
+    ``size + 2·halo`` frames, so every chunk has the same shape."""
+    lo, hi = start - halo, start + size + halo
+    out = np.full((hi - lo, *arr.shape[1:]), fill, arr.dtype)
+    s, e = max(lo, 0), min(hi, arr.shape[0])
+    out[s - lo : e - lo] = arr[s:e]
+    return out
+
+
+def _over_chunks(n: int, size: int, prepare: Callable, compute: Callable, collect: Callable):
+    """Run a kernel over the chunks ``[a, a + size)`` of n frames as a pipeline.
+
+    `prepare(a)` (slicing, padding, host-to-device copy) runs on a worker thread one
+    chunk ahead; `compute(*args)` is dispatched asynchronously, and the previous chunk's
+    result is fetched by `collect(a, result)` while the device works on the next one.
+    """
+    starts = list(range(0, n, size))
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = pool.submit(prepare, starts[0])
+        pending = None
+        for i, a in enumerate(starts):
+            args = ahead.result()
+            if i + 1 < len(starts):
+                ahead = pool.submit(prepare, starts[i + 1])
+            result = compute(*args)
+            if pending is not None:
+                collect(*pending)
+            pending = (a, result)
+        collect(*pending)
+
+
+@functools.partial(jax.jit, static_argnames=("window", "variant"))
+def _variance_chunk(x: jax.Array, window: int, variant: str) -> jax.Array:
+    h = window // 2
+    return led_variance(x, window, variant=variant)[h : x.shape[0] - h]
+
+
 def chunked_led_variance(
     positions: np.ndarray, window: int, variant: str, chunk: int = CHUNK
 ) -> np.ndarray:
     """`led_variance` over a whole recording in chunks with a halo of half a window."""
     n = positions.shape[0]
     h = window // 2
+    size = _chunk_length(n, chunk)
     out = np.empty(positions.shape[:2])
-    for a in range(0, n, chunk):
-        b = min(n, a + chunk)
-        lo, hi = max(0, a - h), min(n, b + h)
-        v = np.asarray(led_variance(jnp.asarray(positions[lo:hi]), window, variant=variant))
-        out[a:b] = v[a - lo : a - lo + (b - a)]
+
+    def prepare(a):
+        return (jax.device_put(_slab(positions, a, size, h, np.nan)),)
+
+    def collect(a, v):
+        b = min(n, a + size)
+        out[a:b] = np.asarray(v)[: b - a]
+
+    _over_chunks(n, size, prepare, lambda x: _variance_chunk(x, window, variant), collect)
     return out
 
 
@@ -119,13 +172,95 @@ def fit_poses(
 ):
     """Weighted Procrustes over all frames in chunks → numpy arrays of a RigidFit."""
     n = positions.shape[0]
-    parts = []
+    size = _chunk_length(n, chunk)
     model = jnp.asarray(constellation)
-    for a in range(0, n, chunk):
-        b = min(n, a + chunk)
-        fit = weighted_procrustes(model, jnp.asarray(positions[a:b]), jnp.asarray(weights[a:b]))
-        parts.append(jax.tree.map(np.asarray, fit))
+    parts = []
+
+    def prepare(a):
+        return (
+            jax.device_put(_slab(positions, a, size, 0, np.nan)),
+            jax.device_put(_slab(np.asarray(weights, np.float64), a, size, 0, 0.0)),
+        )
+
+    def collect(a, fit):
+        b = min(n, a + size)
+        parts.append(jax.tree.map(lambda v: np.asarray(v)[: b - a], fit))
         advance(b - a)
+
+    _over_chunks(n, size, prepare, lambda x, w: weighted_procrustes(model, x, w), collect)
+    return jax.tree.map(lambda *x: np.concatenate(x), *parts)
+
+
+@functools.partial(jax.jit, static_argnames=("weighting", "params", "window"))
+def _poses_chunk(model, x_halo, usable, variance, *, weighting, params, window):
+    """Pairwise variance (if the scheme needs it), weights and poses of one chunk.
+
+    `x_halo` holds the chunk's positions with half a window on each side; `variance`
+    the paper variance of the chunk's frames (NaN where the scheme does not need it).
+    """
+    h = window // 2
+    x = x_halo[h : x_halo.shape[0] - h]
+    seen = jnp.all(jnp.isfinite(x), axis=-1) & usable[None]
+    if "pairwise_variance" in weighting_needs(weighting):
+        pairwise = led_variance(x_halo, window, variant="pairwise")[h : x_halo.shape[0] - h]
+    else:
+        pairwise = jnp.full(seen.shape, jnp.nan, x.dtype)
+    features = LedFeatures(
+        visible=seen,
+        variance=variance,
+        pairwise_variance=pairwise,
+        residual=jnp.zeros(seen.shape, x.dtype),
+        emission_angle=jnp.full(seen.shape, jnp.nan, x.dtype),
+    )
+    weights = get_weighting(weighting)(features, **dict(params))
+    return weighted_procrustes(model, x, weights)
+
+
+def fused_poses(
+    constellation: np.ndarray,
+    positions: np.ndarray,
+    usable: np.ndarray,
+    variance: np.ndarray | None,
+    weighting: str,
+    params: dict,
+    window: int,
+    chunk: int = CHUNK,
+    advance: Callable = lambda n=1: None,
+):
+    """Poses of a whole recording for a scheme that needs no previous fit, as one
+    jit-compiled kernel per chunk (pairwise variance, weights, Procrustes) run as a
+    pipeline over the chunks → numpy arrays of a RigidFit."""
+    n = positions.shape[0]
+    h = window // 2
+    size = _chunk_length(n, chunk)
+    model = jnp.asarray(constellation)
+    usable_j = jnp.asarray(usable)
+    var = np.full(positions.shape[:2], np.nan) if variance is None else variance
+    parts = []
+
+    def prepare(a):
+        return (
+            jax.device_put(_slab(positions, a, size, h, np.nan)),
+            jax.device_put(_slab(var, a, size, 0, np.nan)),
+        )
+
+    def compute(x, v):
+        return _poses_chunk(
+            model,
+            x,
+            usable_j,
+            v,
+            weighting=weighting,
+            params=tuple(sorted(params.items())),
+            window=window,
+        )
+
+    def collect(a, fit):
+        b = min(n, a + size)
+        parts.append(jax.tree.map(lambda v: np.asarray(v)[: b - a], fit))
+        advance(b - a)
+
+    _over_chunks(n, size, prepare, compute, collect)
     return jax.tree.map(lambda *x: np.concatenate(x), *parts)
 
 
@@ -175,14 +310,20 @@ def estimate_poses(
     if window < 3 or window > n:
         raise UserError(f"--window must be between 3 and the number of frames ({n}), got {window}")
     notes = []
+    iterative = bool(needs & {"residual", "emission_angle"})
+    registering = constellation is None and register and reference is not None
+    variance = pairwise = None
     with progress_bar("LED variance", 2 * n, progress) as advance:
-        variance = chunked_led_variance(positions, window, "paper")
+        if registering or "variance" in needs:
+            variance = chunked_led_variance(positions, window, "paper")
         advance(n)
-        pairwise = (
-            chunked_led_variance(positions, window, "pairwise")
-            if "pairwise_variance" in needs
-            else np.full((n, m), np.nan)
-        )
+        # non-iterative schemes get the pairwise variance inside the fused pose kernel
+        if iterative:
+            pairwise = (
+                chunked_led_variance(positions, window, "pairwise")
+                if "pairwise_variance" in needs
+                else np.full((n, m), np.nan)
+            )
         advance(n)
 
     registration = None
@@ -190,7 +331,7 @@ def estimate_poses(
         const, source = np.asarray(constellation, np.float64), "given"
     else:
         const, source = None, "nominal"
-        if register and reference is not None:
+        if registering:
             if segments is None:
                 segments = static_segments(rec.time, positions)
             elif segments == "all":
@@ -218,7 +359,16 @@ def estimate_poses(
                 "registration needs three reference LEDs"
             )
     usable = np.isfinite(const).all(1)
+    const0 = np.where(usable[:, None], const, 0.0)
+    if not iterative:
+        with progress_bar("poses", n, progress) as advance:
+            fit = fused_poses(
+                const0, positions, usable, variance, weighting, params, window, advance=advance
+            )
+        return _estimate(rec, fit, ids, const, source, registration, weighting, window, notes)
     seen_used = seen & usable[None]
+    if variance is None:
+        variance = np.full((n, m), np.nan)
     features = LedFeatures(
         visible=jnp.asarray(seen_used),
         variance=jnp.asarray(variance),
@@ -226,12 +376,10 @@ def estimate_poses(
         residual=jnp.zeros((n, m)),
         emission_angle=jnp.full((n, m), jnp.nan),
     )
-    const0 = np.where(usable[:, None], const, 0.0)
-    iterative = bool(needs & {"residual", "emission_angle"})
-    with progress_bar("poses", n * (3 if iterative else 1), progress) as advance:
-        if iterative:  # features from a previous fit: start uniform, refine twice
-            fit = fit_poses(const0, positions, np.asarray(seen_used, np.float64), advance=advance)
-        for _ in range(2 if iterative else 1):
+    with progress_bar("poses", n * 3, progress) as advance:
+        # features from a previous fit: start uniform, refine twice
+        fit = fit_poses(const0, positions, np.asarray(seen_used, np.float64), advance=advance)
+        for _ in range(2):
             if "emission_angle" in needs:
                 if normals is None:
                     raise UserError("emission_angle weighting needs LED normals in /tool")
@@ -242,6 +390,10 @@ def estimate_poses(
                 features = dataclasses.replace(features, residual=jnp.asarray(res))
             weights = np.asarray(scheme(features, **params))
             fit = fit_poses(const0, positions, weights, advance=advance)
+    return _estimate(rec, fit, ids, const, source, registration, weighting, window, notes)
+
+
+def _estimate(rec, fit, ids, const, source, registration, weighting, window, notes):
     return PoseEstimate(
         time=np.asarray(rec.time),
         position=fit.position,

@@ -10,9 +10,9 @@ from jaxtyping import Array, Float
 
 from ._windowed import windowed_moments, windowed_range_is_zero
 
-# Series processed together: keeps the temporaries of one step at O(frames · GROUP)
-# (XLA on CPU page-faults every fresh temporary buffer, so small buffers are faster).
-_GROUP = 8
+# Frames per chunk of the kernel (plus a halo of half a window on each side): the
+# (frames, leds, leds) pair distances of one chunk stay a few MB, in cache.
+_CHUNK = 2048
 
 
 def led_variance(
@@ -51,13 +51,15 @@ def led_variance(
     than `min_count` valid frames are in its window (for ``"pairwise"``: no partner has).
 
     Cost O(frames · leds²) time, independent of the window length (block-local prefix
-    sums, see `windowed_moments`), and O(frames · leds) memory (a scan over groups of
-    LED pairs). Frame-sharded inputs work (XLA inserts the collectives).
+    sums, see `windowed_moments`), and O(frames · leds) memory: the frames are processed
+    in chunks of a few thousand (each with a halo of half a window), so the
+    (frames, pairs) distances exist for one chunk at a time. Frame-sharded inputs work
+    (XLA inserts the collectives) and give bitwise the same result.
 
     Precision: float64 agrees with a direct two-pass evaluation to ~1e-12 relative on
     0.1 m constellations with 15 µm noise (the rounding of the distances themselves,
     1 ulp of 0.1 m against ~20 µm noise, sets that floor). For the paper variant ``d_t``
-    is split into a piecewise-constant part (the sum of per-pair mean distances over the
+    is split into a piecewise-constant part (the sum of per-pair reference distances over the
     partners seen) and a small remainder; where the partner set does not change within
     the window the variance is that of the remainder, so the jumps of ``d_t`` elsewhere
     cost no precision. In float32 the positions themselves carry ~0.1 µm rounding at
@@ -78,104 +80,117 @@ def led_variance(
     return _led_variance(positions, int(window) // 2, variant, int(min_count))
 
 
-def _pair_groups(n_leds: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """LED pairs a < b, padded to whole groups: (groups, GROUP) index arrays + mask."""
-    a, b = np.triu_indices(n_leds, k=1)
-    n_pairs = len(a)
-    n_groups = -(-n_pairs // _GROUP)
-    pad = n_groups * _GROUP - n_pairs
-    real = np.concatenate([np.ones(n_pairs, bool), np.zeros(pad, bool)])
-    a = np.concatenate([a, np.zeros(pad, a.dtype)]).reshape(n_groups, _GROUP)
-    b = np.concatenate([b, np.ones(pad, b.dtype)]).reshape(n_groups, _GROUP)
-    return a, b, real.reshape(n_groups, _GROUP)
+def _chunks(x: Array, half_width: int, chunk: int) -> Array:
+    """(frames, ...) -> (chunks, halo + chunk + halo, ...), NaN-padded beyond the ends."""
+    n = x.shape[0]
+    nc = -(-n // chunk)
+    tail = [(0, 0)] * (x.ndim - 1)
+    main = jnp.pad(x, [(0, nc * chunk - n)] + tail, constant_values=jnp.nan)
+    main = main.reshape(nc, chunk, *x.shape[1:])
+    h = half_width
+    if h == 0:
+        return main
+    pad = jnp.full((1, h, *x.shape[1:]), jnp.nan, x.dtype)
+    left = jnp.concatenate([pad, main[:-1, chunk - h :]], axis=0)
+    right = jnp.concatenate([main[1:, :h], pad], axis=0)
+    return jnp.concatenate([left, main, right], axis=1)
 
 
-def _grouped_moments(x: Array, valid: Array, half_width: int) -> tuple[Array, Array]:
-    """`windowed_moments` over groups of series: (count, m2), each (frames, series)."""
-    n, s = x.shape
-    n_groups = -(-s // _GROUP)
-    pad = n_groups * _GROUP - s
-    xg = jnp.pad(x, ((0, 0), (0, pad))).reshape(n, n_groups, _GROUP).transpose(1, 0, 2)
-    vg = jnp.pad(valid, ((0, 0), (0, pad))).reshape(n, n_groups, _GROUP).transpose(1, 0, 2)
-    count, _, m2 = jax.lax.map(lambda xv: windowed_moments(xv[0], xv[1], half_width), (xg, vg))
-    back = lambda a: a.transpose(1, 0, 2).reshape(n, n_groups * _GROUP)[:, :s]
-    return back(count), back(m2)
+def _pair_distances(x: Array, seen: Array) -> tuple[Array, Array]:
+    """Distances (frames, pairs) and where both LEDs are seen, for the LED pairs
+    (a, a + k) ordered by offset k = 1 .. leds-1, then by a.
+
+    Built from shifted slices (LED a against LED a + k), not gathers: XLA's gather is
+    slow on CPU.
+    """
+    m = seen.shape[1]
+
+    def pairs(v, op):
+        return jnp.concatenate([op(v[:, : m - k], v[:, k:]) for k in range(1, m)], axis=1)
+
+    both = pairs(seen, jnp.logical_and)
+    diff = [pairs(x[..., i], jnp.subtract) for i in range(3)]
+    # explicit order: the same rounding whatever the fusion or sharding
+    sq = (diff[0] * diff[0] + diff[1] * diff[1]) + diff[2] * diff[2]
+    # double-where: sqrt has an infinite derivative at 0 (unseen partners).
+    return jnp.where(both, jnp.sqrt(jnp.where(both, sq, 1.0)), 0.0), both
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3))
 def _led_variance(positions: Array, half_width: int, variant: str, min_count: int) -> Array:
     dtype = positions.dtype
     n, n_leds, _ = positions.shape
-    seen = jnp.all(jnp.isfinite(positions), axis=-1)  # (N, M)
-    safe = jnp.where(seen[..., None], positions, 0.0)
-    idx_a, idx_b, real = _pair_groups(n_leds)
-    # Gathers and scatter-adds as one-hot matmuls (exact: one non-zero term per output;
-    # HIGHEST keeps float32 out of reduced-precision GPU matmuls). XLA's scatter and
-    # gather are slow on CPU.
+    h = half_width
+    chunk = max(_CHUNK, h)
+
+    # pairs (a, a + k) in the order of `_pair_distances`; incidence (pairs, leds)
+    pair_a = np.concatenate([np.arange(n_leds - k) for k in range(1, n_leds)])
+    pair_b = np.concatenate([np.arange(k, n_leds) for k in range(1, n_leds)])
     leds = np.arange(n_leds)
-    sel_a = jnp.asarray((idx_a[..., None] == leds) & real[..., None], dtype)  # (groups, G, M)
-    sel_b = jnp.asarray((idx_b[..., None] == leds) & real[..., None], dtype)
-    seen_f = seen.astype(dtype)
-    safe_t = jnp.swapaxes(safe, 1, 2).reshape(n * 3, n_leds)  # one 2-D GEMM, not N small
-    hp = jax.lax.Precision.HIGHEST
+    incidence = jnp.asarray((pair_a[:, None] == leds) | (pair_b[:, None] == leds), dtype)
 
-    def pair_distances(group):
-        """Distances (N, G) of a group of pairs and where both LEDs are seen."""
-        sa, sb = group
-        both = (jnp.dot(seen_f, sa.T, precision=hp) * jnp.dot(seen_f, sb.T, precision=hp)) > 0.5
-        diff = jnp.matmul(safe_t, (sa - sb).T, precision=hp).reshape(n, 3, -1)  # (N, 3, G)
-        # explicit order: the same rounding whatever the fusion or sharding
-        sq = (diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]) + diff[:, 2] * diff[:, 2]
-        # double-where: sqrt has an infinite derivative at 0 (unseen partners).
-        dist = jnp.where(both, jnp.sqrt(jnp.where(both, sq, 1.0)), 0.0)
-        return dist, both
+    def to_leds(v):
+        """(..., pairs) -> (..., leds): for each LED the sum over the pairs it is in, as
+        one matmul (exact: at most leds - 1 non-zero terms; HIGHEST keeps float32 out of
+        reduced-precision GPU matmuls). XLA's scatter is slow on CPU."""
+        return jnp.matmul(v, incidence, precision=jax.lax.Precision.HIGHEST)
 
-    zeros = jnp.zeros((n, n_leds), dtype)
-
-    def scatter(acc, group, val):
-        """acc[:, a] += val and acc[:, b] += val for each pair (a, b) of the group."""
-        sel = group[0] + group[1]
-        flat = val.reshape(-1, sel.shape[0])
-        return acc + jnp.matmul(flat, sel, precision=hp).reshape(acc.shape)
+    def prepare(x):
+        seen = jnp.all(jnp.isfinite(x), axis=-1)
+        return jnp.where(seen[..., None], x, 0.0), seen
 
     if variant == "paper":
 
-        def step(acc, group):
-            dist, both = pair_distances(group)
-            # Per-pair reference distance: d = e + r, with r = Σ_b ref_ab piecewise
+        def paper_chunk(xc):
+            x, seen = prepare(xc)
+            # All (a, b) pairs as (frames, leds, leds) broadcasts reduced over b: one
+            # fused loop, no gathers (twice the distances of a < b, still cheaper).
+            both = seen[:, :, None] & seen[:, None, :] & ~np.eye(n_leds, dtype=bool)
+            sq = 0.0
+            for i in range(3):
+                diff = x[:, :, None, i] - x[:, None, :, i]
+                sq = sq + diff * diff
+            # double-where: sqrt has an infinite derivative at 0 (unseen partners).
+            dist = jnp.where(both, jnp.sqrt(jnp.where(both, sq, 1.0)), 0.0)
+            # Per-pair reference distance ref_ab: d = e + r with r = Σ_b ref_ab piecewise
             # constant (it changes only when partners come and go) and e small. ref_ab is
-            # the distance at the first frame where both are seen: exact and independent
-            # of how the frames are split across devices (a mean would not be).
+            # the distance at the first frame of the chunk (halo included) where both are
+            # seen: every window lies inside one chunk, and the chunks do not depend on
+            # how the frames are split across devices.
             first = jnp.argmax(both, axis=0)
-            ref = jnp.take_along_axis(dist, first[None, :], axis=0)[0]
-            bw = both.astype(dtype)
+            ref = jax.lax.stop_gradient(jnp.take_along_axis(dist, first[None], axis=0))
             # paper eq. 4: d = sum over the partners seen at t; also e, r, partner count
-            vals = jnp.stack([dist, jnp.where(both, dist - ref, 0.0), bw * ref, bw])
-            return scatter(acc, group, vals), None
+            d = jnp.sum(dist, axis=2)
+            e = jnp.sum(jnp.where(both, dist - ref, 0.0), axis=2)
+            r = jnp.sum(jnp.where(both, ref, 0.0), axis=2)
+            k = jnp.sum(both, axis=2)
+            ok = seen & (k > 0)
+            count, _, m2 = windowed_moments(
+                jnp.concatenate([d, e], axis=1), jnp.tile(ok, (1, 2)), h
+            )
+            count, m2_d, m2_e = count[:, :n_leds], m2[:, :n_leds], m2[:, n_leds:]
+            # Where the partner set (hence r) is constant over the window, var(d) =
+            # var(e) exactly and var(e) has no cancellation; elsewhere the jump
+            # dominates var(d).
+            constant = windowed_range_is_zero(r, ok, h)
+            m2 = jnp.where(constant, m2_e, m2_d)
+            # paper eq. 3 and 5: population variance over the valid window frames
+            var = m2 / jnp.where(count > 0, count, 1.0)
+            out = jnp.where(seen & (count >= min_count), var, jnp.nan)
+            return out[h : h + chunk]
 
-        acc0 = jnp.zeros((4, n, n_leds), dtype)
-        (d, e, r, k), _ = jax.lax.scan(step, acc0, (sel_a, sel_b))
-        ok = seen & (k > 0)
-        count, m2 = _grouped_moments(
-            jnp.concatenate([d, e], axis=1), jnp.tile(ok, (1, 2)), half_width
-        )
-        count, m2_d, m2_e = count[:, :n_leds], m2[:, :n_leds], m2[:, n_leds:]
-        # Where the partner set (hence r) is constant over the window, var(d) = var(e)
-        # exactly and var(e) has no cancellation; elsewhere the jump dominates var(d).
-        constant = windowed_range_is_zero(r, ok, half_width)
-        m2 = jnp.where(constant, m2_e, m2_d)
-        # paper eq. 3 and 5: population variance over the valid window frames
-        var = m2 / jnp.where(count > 0, count, 1.0)
-        return jnp.where(seen & (count >= min_count), var, jnp.nan).astype(dtype)
+        body = paper_chunk
+    else:
 
-    def step_pairwise(carry, group):
-        total, n_use = carry
-        dist, both = pair_distances(group)
-        count, _, m2 = windowed_moments(dist, both, half_width)
-        use = count >= min_count
-        var = jnp.where(use, m2 / jnp.where(use, count, 1.0), 0.0)
-        return (scatter(total, group, var), scatter(n_use, group, use.astype(dtype))), None
+        def body(xc):
+            x, seen = prepare(xc)
+            dist, both = _pair_distances(x, seen)
+            count, _, m2 = windowed_moments(dist, both, h)
+            use = count >= min_count
+            var = jnp.where(use, m2 / jnp.where(use, count, 1.0), 0.0)
+            total, n_use = to_leds(jnp.stack([var, use.astype(dtype)]))
+            mean = total / jnp.where(n_use > 0, n_use, 1.0)
+            return jnp.where(seen & (n_use > 0), mean, jnp.nan)[h : h + chunk]
 
-    (total, n_use), _ = jax.lax.scan(step_pairwise, (zeros, zeros), (sel_a, sel_b))
-    mean = total / jnp.where(n_use > 0, n_use, 1.0)
-    return jnp.where(seen & (n_use > 0), mean, jnp.nan).astype(dtype)
+    out = jax.lax.map(body, _chunks(positions, h, chunk))
+    return out.reshape(-1, n_leds)[:n].astype(dtype)

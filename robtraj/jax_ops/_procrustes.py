@@ -21,10 +21,12 @@ class RigidFit(eqx.Module):
       `valid`.
     - `n_used`: `(frames,)` number of LEDs with weight > 0 and finite measurement.
     - `valid`: `(frames,)` at least 3 LEDs used and the geometry is not (nearly) collinear.
-    - `condition`: `(frames,)` in [0, 1]: the smaller of (a) the ratio of the second to
-      the largest eigenvalue of the weighted model scatter and (b) the relative gap of
-      the two largest eigenvalues of Horn's matrix. Near 0 means (nearly) collinear
-      LEDs, where the rotation about the line is undetermined.
+    - `condition`: `(frames,)` in [0, 1]: the smaller of (a) the ratio e2/e1 of the
+      second to the largest eigenvalue of the weighted model scatter and (b) the
+      relative gap (λ1 - λ2)/λ1 of the two largest eigenvalues of Horn's matrix. Near 0
+      means (nearly) collinear LEDs, where the rotation about the line is undetermined.
+      Exact to first order near 0, where it decides `valid`; for well-spread LEDs (a)
+      may be a few per cent low and (b) is a lower bound. No gradient.
     """
 
     quaternion_wxyz: Float[Array, "frames 4"]
@@ -46,48 +48,6 @@ def collinear_threshold(dtype) -> float:
     return float(np.sqrt(np.finfo(dtype).eps))
 
 
-@jax.custom_jvp
-def _top_eigh(n: Array) -> tuple[Array, Array, Array]:
-    """Largest eigenvalue, its eigenvector and all eigenvalues of symmetric (..., 4, 4)."""
-    w, v = jnp.linalg.eigh(n)
-    return w[..., -1], v[..., :, -1], w
-
-
-@_top_eigh.defjvp
-def _top_eigh_jvp(primals, tangents):
-    # Only the gaps to the top eigenvalue enter (first-order perturbation theory); JAX's
-    # eigh JVP uses all pairs and gives NaN when two *other* eigenvalues coincide, which
-    # happens for symmetric constellations.
-    (n,), (dn,) = primals, tangents
-    w, v = jnp.linalg.eigh(n)
-    top, vec = w[..., -1], v[..., :, -1]
-    dn = 0.5 * (dn + jnp.swapaxes(dn, -1, -2))
-    gap = top[..., None] - w  # (..., 4), 0 for the top itself
-    ok = gap > 0
-    inv = jnp.where(ok, 1.0 / jnp.where(ok, gap, 1.0), 0.0)
-    inv = inv.at[..., -1].set(0.0)
-    dn_vec = jnp.einsum("...ij,...j->...i", dn, vec)
-    coeff = jnp.einsum("...ji,...j->...i", v, dn_vec)  # v_i · dN · vec
-    dtop = coeff[..., -1]
-    dvec = jnp.einsum("...ij,...j->...i", v, inv * coeff)
-    dw = jnp.einsum("...ji,...jk,...ki->...i", v, dn, v)
-    return (top, vec, w), (dtop, dvec, dw)
-
-
-def _horn_matrix(s: Array) -> Array:
-    """Horn's symmetric 4x4 matrix from S[a, b] = Σ w model_a measured_b (Horn 1987, eq. 4.13)."""
-    sxx, sxy, sxz = s[..., 0, 0], s[..., 0, 1], s[..., 0, 2]
-    syx, syy, syz = s[..., 1, 0], s[..., 1, 1], s[..., 1, 2]
-    szx, szy, szz = s[..., 2, 0], s[..., 2, 1], s[..., 2, 2]
-    rows = [
-        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
-        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
-        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
-        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
-    ]
-    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
-
-
 def weighted_procrustes(
     model: Float[Array, "leds 3"] | Float[Array, "frames leds 3"],
     measured: Float[Array, "frames leds 3"],
@@ -98,10 +58,14 @@ def weighted_procrustes(
     Minimises ``Σ_k w_k |R p_k + t - y_k|²`` over proper rotations R (det +1, never a
     reflection) and translations t, in closed form with Horn's unit-quaternion method:
     the rotation is the eigenvector of the largest eigenvalue of a symmetric 4x4 matrix
-    built from the weighted centred cross-covariance. Exact least-squares solution, so it
-    also eliminates per-frame poses in a bundle adjustment. Differentiable w.r.t.
-    `model`, `measured` and `weights` (the eigenvector gradient uses only the gap to the
-    top eigenvalue, which is non-zero for every valid frame).
+    N built from the weighted centred cross-covariance. That eigenvalue is found by
+    Newton's method on the characteristic quartic of N (QCP: Theobald 2005, Liu et al.
+    2010) from an upper bound, so it converges monotonically; the eigenvector is the
+    best-conditioned column of the adjugate of ``N - λ I``. No eigen-solver or SVD,
+    whole-array and branch-free. Exact least-squares solution, so it also eliminates
+    per-frame poses in a bundle adjustment. Differentiable w.r.t. `model`, `measured`
+    and `weights` (the last Newton step carries the implicit derivative of λ, which
+    exists for every valid frame; `condition` carries no gradient).
 
     **Arguments:**
 
@@ -123,88 +87,359 @@ def weighted_procrustes(
         raise ValueError(f"measured must be (frames, leds, 3), got {measured.shape}")
     if model.shape[-2:] != measured.shape[-2:] or model.ndim not in (2, 3):
         raise ValueError(f"model {model.shape} does not match measured {measured.shape}")
+    if model.ndim == 3 and model.shape[0] != measured.shape[0]:
+        raise ValueError(f"model {model.shape} does not match measured {measured.shape}")
     if weights.shape != measured.shape[:2]:
         raise ValueError(f"weights {weights.shape} do not match measured {measured.shape}")
     dtype = jnp.result_type(model, measured, weights)
-    model = jnp.broadcast_to(model.astype(dtype), measured.shape)
-    return _weighted_procrustes(model, measured.astype(dtype), weights.astype(dtype))
+    model, measured, weights = model.astype(dtype), measured.astype(dtype), weights.astype(dtype)
+    # Pad the frames to one block or a power of two (weight 0: invalid frames, cut off
+    # again), so callers with varying frame counts (e.g. one call per static segment)
+    # reuse a few compiled kernels; a block of frames costs far less than a compilation.
+    n = measured.shape[0]
+    padded = max(_BLOCK, 1 << max(n - 1, 0).bit_length())
+    if padded == n:
+        return _weighted_procrustes(model, measured, weights)
+
+    def pad(a):
+        return jnp.pad(a, [(0, padded - n)] + [(0, 0)] * (a.ndim - 1))
+
+    if model.ndim == 3:
+        model = pad(model)
+    fit = _weighted_procrustes(model, pad(measured), pad(weights))
+    return jax.tree.map(lambda a: a[:n], fit)
+
+
+# Newton steps on the quartic (λ1) and on the deflated cubic (λ2, for the gap) and on the
+# scatter's cubic. From the upper bound the iterates decrease monotonically to the root;
+# for a well-fitting frame the bound is within noise of λ1 and 2-3 steps reach full
+# precision, a mirror-image fit needs ~8 (tested).
+_STEPS_TOP = 10
+_STEPS_GAP = 8
+_STEPS_SCATTER = 8
+
+
+# Frames per block of the kernel: the dozen passes over a block's (frames, leds, 3)
+# arrays then run in cache instead of main memory.
+_BLOCK = 4096
 
 
 @jax.jit
 def _weighted_procrustes(model: Array, measured: Array, weights: Array) -> RigidFit:
-    return RigidFit(*jax.vmap(_fit_frame)(model, measured, weights))
+    n = measured.shape[0]
+    if n <= _BLOCK:
+        return _fit_block(model, measured, weights)
+    nb = -(-n // _BLOCK)
+    pad = nb * _BLOCK - n
+
+    def blocks(a):
+        a = jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1))
+        return a.reshape(nb, _BLOCK, *a.shape[1:])
+
+    if model.ndim == 2:
+        out = jax.lax.map(lambda a: _fit_block(model, *a), (blocks(measured), blocks(weights)))
+    else:
+        out = jax.lax.map(
+            lambda a: _fit_block(*a), (blocks(model), blocks(measured), blocks(weights))
+        )
+    return jax.tree.map(lambda a: a.reshape(nb * _BLOCK, *a.shape[2:])[:n], out)
 
 
-def _fit_frame(model: Array, measured: Array, weights: Array) -> tuple[Array, ...]:
-    """One frame: model (M, 3), measured (M, 3), weights (M,)."""
+def _fit_block(model: Array, measured: Array, weights: Array) -> RigidFit:
     dtype = measured.dtype
     tol = collinear_threshold(dtype)
-    used = (
-        (weights > 0)
-        & jnp.isfinite(weights)
-        & jnp.all(jnp.isfinite(measured), axis=-1)
-        & jnp.all(jnp.isfinite(model), axis=-1)
-    )
-    # double-where: make masked entries safe before any arithmetic.
+    n, m = weights.shape
+    finite = jnp.all(jnp.isfinite(measured), axis=-1) & jnp.all(jnp.isfinite(model), axis=-1)
+    used = (weights > 0) & jnp.isfinite(weights) & finite  # (frames, leds)
+    # double-where: masked entries are made safe before any arithmetic.
     w = jnp.where(used, weights, 0.0)
-    p = jnp.where(used[:, None], model, 0.0)
-    y = jnp.where(used[:, None], measured, 0.0)
-    n_used = jnp.sum(used)
-    wsum = jnp.sum(w)
-    wsum_safe = jnp.where(wsum > 0, wsum, 1.0)
-    wn = w / wsum_safe
-    p_bar = wn @ p
-    y_bar = wn @ y
-    pc = jnp.where(used[:, None], p - p_bar, 0.0)
-    yc = jnp.where(used[:, None], y - y_bar, 0.0)
+    n_used = jnp.sum(used, axis=1)
+    wsum = jnp.sum(w, axis=1)
+    wn = w / jnp.where(wsum > 0, wsum, 1.0)[:, None]
+    y = jnp.where(used[..., None], measured, 0.0)
+    if model.ndim == 2:
+        moments, rotated_model = _moments_shared(model, y, wn)
+    else:
+        moments, rotated_model = _moments_per_frame(model, y, wn, used)
+    p_bar, y_bar, c, s, g_meas = moments
+    # weighted model scatter C and cross-covariance S[a, b] = Σ w model_a measured_b
+    c = [[c[:, a, b] for b in range(3)] for a in range(3)]
+    s = [[s[:, a, b] for b in range(3)] for a in range(3)]
+    g_model = c[0][0] + c[1][1] + c[2][2]
 
-    # Weighted model scatter: collinearity check relative to its size.
-    scatter = jnp.einsum("k,ki,kj->ij", wn, pc, pc)
-    e = jnp.linalg.eigvalsh(scatter)
-    e1 = e[2]
-    model_ratio = jnp.where(e1 > 0, e[1] / jnp.where(e1 > 0, e1, 1.0), 0.0)
-
-    s = jnp.einsum("k,ki,kj->ij", wn, pc, yc)  # S[a, b] = Σ w model_a measured_b
-    # Scale to O(1) (eigenvectors are scale-invariant): helps float32 with small inputs.
-    scale = jnp.sqrt(jnp.trace(scatter) * jnp.sum(wn * jnp.sum(yc * yc, axis=-1)))
+    model_ratio = _second_to_first(jax.lax.stop_gradient(c))
+    # Scale S to O(1) (the eigenvector is scale-invariant). With this scale λ1 <= 1
+    # (Cauchy-Schwarz), the start of the Newton iteration.
+    scale = jnp.sqrt(g_model * g_meas)
     ok_scale = scale > jnp.finfo(dtype).tiny
-    horn = _horn_matrix(s / jnp.where(ok_scale, scale, 1.0))
     pre = (n_used >= 3) & ok_scale & (model_ratio > tol)
-    # Benign matrix for frames that are invalid already (keeps eigh and its JVP finite).
-    benign = jnp.diag(jnp.array([1.0, 0.0, -1.0, -2.0], dtype))
-    horn = jnp.where(pre, horn, benign)
-    top, q, evals = _top_eigh(horn)
-    spread = jnp.maximum(top - evals[0], jnp.finfo(dtype).tiny)
-    horn_gap = (top - evals[2]) / spread
-    condition = jnp.minimum(model_ratio, horn_gap)
+    inv_scale = 1.0 / jnp.where(ok_scale, scale, 1.0)
+    # Benign S for frames that are invalid already: distinct eigenvalues of N, so every
+    # step below and its derivative stay finite.
+    benign = ((1.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 0.0, 0.25))
+    s = [[jnp.where(pre, s[a][b] * inv_scale, benign[a][b]) for b in range(3)] for a in range(3)]
+
+    horn = _horn_matrix(s)
+    # characteristic polynomial det(N - λI) = λ⁴ + c2 λ² + c1 λ + c0 (trace N = 0)
+    c2 = -2.0 * sum(s[a][b] * s[a][b] for a in range(3) for b in range(3))
+    c1 = -8.0 * _det3(s)
+    c0 = _det4(horn)
+    frob = jnp.sqrt(-0.5 * c2)
+    lam = jax.lax.stop_gradient(jnp.minimum(jnp.where(pre, 1.0, 2.0), jnp.sqrt(3.0) * frob))
+    sc2, sc1, sc0 = (jax.lax.stop_gradient(v) for v in (c2, c1, c0))
+    lam = jax.lax.fori_loop(
+        0,
+        _STEPS_TOP,
+        lambda _, x: x - _safe_div(_quartic(x, sc2, sc1, sc0), _quartic_slope(x, sc2, sc1)),
+        lam,
+    )
+    # One more step outside stop_gradient: at the root it carries dλ = -∂P/∂N / P'(λ),
+    # the exact implicit derivative.
+    lam = lam - _safe_div(_quartic(lam, c2, c1, c0), _quartic_slope(lam, c2, c1))
+
+    # λ2: largest root of the deflated cubic P(λ)/(λ - λ1), Newton from λ1 (monotone).
+    l1 = jax.lax.stop_gradient(lam)
+    b1, b0 = l1 * l1 + sc2, l1 * (l1 * l1 + sc2) + sc1
+
+    def deflated_step(_, x):
+        return x - _safe_div(((x + l1) * x + b1) * x + b0, (3.0 * x + 2.0 * l1) * x + b1)
+
+    lam2 = jax.lax.fori_loop(0, _STEPS_GAP, deflated_step, l1)
+    # Relative gap of N's top eigenvalue (λ1 > 0 for every pre-valid frame); an
+    # unconverged λ2 lies above the root, so the gap is never overestimated.
+    horn_gap = jnp.clip((l1 - lam2) / jnp.where(l1 > 0, l1, 1.0), 0.0, 1.0)
+    condition = jnp.where(pre, jnp.minimum(model_ratio, horn_gap), jnp.minimum(model_ratio, 0.0))
+    condition = jnp.where(ok_scale, condition, 0.0)
     valid = pre & (horn_gap > tol)
 
-    q = q / jnp.linalg.norm(q)
-    q = jnp.where(q[0] < 0, -q, q)  # convention w >= 0
-    r = _quat_to_matrix(q)
-    t = y_bar - r @ p_bar
-    res = y - (p @ r.T + t)
-    ms = jnp.sum(w * jnp.sum(res * res, axis=-1)) / wsum_safe
+    q = _top_eigenvector(horn, lam)
+    sign = jnp.where(q[0] < 0, -1.0, 1.0)  # convention w >= 0
+    q = [sign * qi for qi in q]
+    r = _rotation_rows(q)
+    t = [y_bar[:, a] - sum(r[a][b] * p_bar[:, b] for b in range(3)) for a in range(3)]
+    r = jnp.stack([jnp.stack(row, axis=-1) for row in r], axis=-2)  # (frames, 3, 3)
+    pos = jnp.stack(t, axis=-1)
+    res = y - rotated_model(r) - pos[:, None]
+    ms = jnp.sum(wn * jnp.sum(jnp.where(used[..., None], res, 0.0) ** 2, axis=-1), axis=1)
     # double-where: sqrt has an infinite derivative at a perfect fit.
     rms = jnp.where(ms > 0, jnp.sqrt(jnp.where(ms > 0, ms, 1.0)), 0.0)
     nan = jnp.array(jnp.nan, dtype)
-    # Field order of RigidFit.
-    return (
-        jnp.where(valid, q, nan),
-        jnp.where(valid, t, nan),
+    quat = jnp.stack(q, axis=-1)
+    return RigidFit(
+        jnp.where(valid[:, None], quat, nan),
+        jnp.where(valid[:, None], pos, nan),
         jnp.where(valid, rms, nan),
         n_used,
         valid,
-        condition,
+        jax.lax.stop_gradient(condition),
     )
 
 
-def _quat_to_matrix(q: Array) -> Array:
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return jnp.stack(
+_HP = jax.lax.Precision.HIGHEST  # no reduced-precision matmuls (GPU float32)
+
+
+def _moments_shared(model, y, wn):
+    """Weighted moments for one constellation `model` (leds, 3) shared by all frames.
+
+    All moments are linear in the weights and in ``w · y``, so they are matrix products
+    with constant matrices built from the model: two GEMMs over all frames. They are
+    uncentred; the model is shifted to its own centre first, and the measured points are
+    centred by the first moment, so the cancellation in ``Σ w p yᵀ - p̄ Σ w yᵀ`` costs
+    a factor |y| / |y - ȳ| (~15 for a 0.1 m tool at 1.5 m): ~1e-14 in float64, and in
+    float32 no more than the rounding of the measured points themselves.
+    """
+    n, m, _ = y.shape
+    dtype = y.dtype
+    ok_m = jnp.all(jnp.isfinite(model), axis=-1)
+    p0 = jnp.where(ok_m[:, None], model, 0.0)
+    origin = jnp.sum(p0, axis=0) / jnp.maximum(jnp.sum(ok_m), 1)
+    p = jnp.where(ok_m[:, None], p0 - origin, 0.0)  # (leds, 3)
+    eye = jnp.eye(3, dtype=dtype)
+    # wn @ [p | p pᵀ]: first and second model moments
+    pm = jnp.concatenate([p, (p[:, :, None] * p[:, None, :]).reshape(m, 9)], axis=1)
+    mom_p = jnp.matmul(wn, pm, precision=_HP)
+    p_bar = mom_p[:, :3]
+    c = mom_p[:, 3:].reshape(n, 3, 3) - p_bar[:, :, None] * p_bar[:, None, :]
+    # (w y)_flat @ K, K[(m, j'), (i, j)] = p[m, i] δ(j', j) and K[(m, j'), j] = δ(j', j):
+    # Σ_m w p_mi y_mj and Σ_m w y_mj
+    k = jnp.concatenate(
         [
-            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
-            jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
-            jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]),
-        ]
+            (eye[None, :, None, :] * p[:, None, :, None]).reshape(m * 3, 9),
+            jnp.tile(eye, (m, 1)),
+        ],
+        axis=1,
     )
+    wy = (wn[..., None] * y).reshape(n, m * 3)
+    mom_y = jnp.matmul(wy, k, precision=_HP)
+    y_bar = mom_y[:, 9:]
+    s = mom_y[:, :9].reshape(n, 3, 3) - p_bar[:, :, None] * y_bar[:, None, :]
+    g_meas = jnp.sum(wy.reshape(n, m, 3) * (y - y_bar[:, None]), axis=(1, 2))
+    # Q[(i, j), (m, i')] = p[m, j] δ(i, i'): (R p_m)_i for all LEDs = R_flat @ Q
+    q_mat = (eye[:, None, None, :] * p.T[None, :, :, None]).reshape(9, m * 3)
+
+    def rotated_model(r):  # R p_m (unshifted model) per frame and LED, (frames, leds, 3)
+        rp = jnp.matmul(r.reshape(n, 9), q_mat, precision=_HP).reshape(n, m, 3)
+        return rp + jnp.einsum("fij,j->fi", r, origin)[:, None]
+
+    return (p_bar + origin, y_bar, c, s, g_meas), rotated_model
+
+
+def _moments_per_frame(model, y, wn, used):
+    """Weighted centred moments for a constellation per frame, `model` (frames, leds, 3)."""
+    p = jnp.where(used[..., None], model, 0.0)
+    p_bar = jnp.sum(wn[..., None] * p, axis=1)
+    y_bar = jnp.sum(wn[..., None] * y, axis=1)
+    pc = jnp.where(used[..., None], p - p_bar[:, None], 0.0)
+    yc = jnp.where(used[..., None], y - y_bar[:, None], 0.0)
+    wpc = wn[..., None] * pc
+    c = jnp.einsum("fmi,fmj->fij", wpc, pc, precision=_HP)
+    s = jnp.einsum("fmi,fmj->fij", wpc, yc, precision=_HP)
+    g_meas = jnp.sum(wn * jnp.sum(yc * yc, axis=-1), axis=1)
+
+    def rotated_model(r):
+        return jnp.einsum("fij,fmj->fmi", r, p, precision=_HP)
+
+    return (p_bar, y_bar, c, s, g_meas), rotated_model
+
+
+def _safe_div(num: Array, den: Array) -> Array:
+    ok = den != 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+
+def _quartic(lam, c2, c1, c0):
+    l2 = lam * lam
+    return (l2 + c2) * l2 + c1 * lam + c0
+
+
+def _quartic_slope(lam, c2, c1):
+    return (4.0 * lam * lam + 2.0 * c2) * lam + c1
+
+
+def _det3(m) -> Array:
+    return (
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    )
+
+
+def _minors(a):
+    """2x2 minors of the top two rows (s) and the bottom two rows (c) of a 4x4."""
+    s = [
+        a[0][0] * a[1][1] - a[1][0] * a[0][1],
+        a[0][0] * a[1][2] - a[1][0] * a[0][2],
+        a[0][0] * a[1][3] - a[1][0] * a[0][3],
+        a[0][1] * a[1][2] - a[1][1] * a[0][2],
+        a[0][1] * a[1][3] - a[1][1] * a[0][3],
+        a[0][2] * a[1][3] - a[1][2] * a[0][3],
+    ]
+    c = [
+        a[2][0] * a[3][1] - a[3][0] * a[2][1],
+        a[2][0] * a[3][2] - a[3][0] * a[2][2],
+        a[2][0] * a[3][3] - a[3][0] * a[2][3],
+        a[2][1] * a[3][2] - a[3][1] * a[2][2],
+        a[2][1] * a[3][3] - a[3][1] * a[2][3],
+        a[2][2] * a[3][3] - a[3][2] * a[2][3],
+    ]
+    return s, c
+
+
+def _det4(a) -> Array:
+    """Determinant of a 4x4 (nested lists of arrays) by Laplace expansion in 2x2 minors."""
+    s, c = _minors(a)
+    return s[0] * c[5] - s[1] * c[4] + s[2] * c[3] + s[3] * c[2] - s[4] * c[1] + s[5] * c[0]
+
+
+def _top_eigenvector(horn, lam) -> list[Array]:
+    """Unit eigenvector of symmetric N for its simple eigenvalue λ: the column of
+    adj(N - λI) ∝ q qᵀ with the largest diagonal entry (∝ q_k², the best conditioned),
+    chosen by masks."""
+    a = [[horn[i][j] - (lam if i == j else 0.0) for j in range(4)] for i in range(4)]
+    s, c = _minors(a)
+    # adj[i][j] for the symmetric A; column j = row j.
+    adj = [
+        [
+            a[1][1] * c[5] - a[1][2] * c[4] + a[1][3] * c[3],
+            -a[0][1] * c[5] + a[0][2] * c[4] - a[0][3] * c[3],
+            a[3][1] * s[5] - a[3][2] * s[4] + a[3][3] * s[3],
+            -a[2][1] * s[5] + a[2][2] * s[4] - a[2][3] * s[3],
+        ],
+        [
+            -a[1][0] * c[5] + a[1][2] * c[2] - a[1][3] * c[1],
+            a[0][0] * c[5] - a[0][2] * c[2] + a[0][3] * c[1],
+            -a[3][0] * s[5] + a[3][2] * s[2] - a[3][3] * s[1],
+            a[2][0] * s[5] - a[2][2] * s[2] + a[2][3] * s[1],
+        ],
+        [
+            a[1][0] * c[4] - a[1][1] * c[2] + a[1][3] * c[0],
+            -a[0][0] * c[4] + a[0][1] * c[2] - a[0][3] * c[0],
+            a[3][0] * s[4] - a[3][1] * s[2] + a[3][3] * s[0],
+            -a[2][0] * s[4] + a[2][1] * s[2] - a[2][3] * s[0],
+        ],
+        [
+            -a[1][0] * c[3] + a[1][1] * c[1] - a[1][2] * c[0],
+            a[0][0] * c[3] - a[0][1] * c[1] + a[0][2] * c[0],
+            -a[3][0] * s[3] + a[3][1] * s[1] - a[3][2] * s[0],
+            a[2][0] * s[3] - a[2][1] * s[1] + a[2][2] * s[0],
+        ],
+    ]
+    diag = jnp.stack([jnp.abs(adj[k][k]) for k in range(4)], axis=-1)
+    pick = jax.nn.one_hot(jnp.argmax(jax.lax.stop_gradient(diag), axis=-1), 4, dtype=lam.dtype)
+    col = [sum(pick[:, k] * adj[k][i] for k in range(4)) for i in range(4)]
+    sq = col[0] * col[0] + col[1] * col[1] + col[2] * col[2] + col[3] * col[3]
+    inv = jax.lax.rsqrt(jnp.where(sq > 0, sq, 1.0))
+    return [ci * inv for ci in col]
+
+
+def _second_to_first(c) -> Array:
+    """Ratio e2/e1 of the two largest eigenvalues of the symmetric PSD 3x3 `c` (nested
+    lists of arrays), 0 where c = 0.
+
+    From the invariants t = e1+e2+e3, k = e1e2+e1e3+e2e3, d = e1e2e3: e1 by Newton on
+    x³ - t x² + k x - d from ``|c|_F >= e1`` (monotone), then e2 and e3 as the roots of
+    x² - (k - d/e1)/e1 x + d/e1. Near collinearity (e2 << e1), where the ratio decides
+    validity, it is accurate to ~eps/ratio relative; for well-spread constellations an
+    unconverged e1 biases it by at most a few per cent (documented in `RigidFit`).
+    """
+    t = c[0][0] + c[1][1] + c[2][2]
+    k = (
+        (c[0][0] * c[1][1] - c[0][1] * c[1][0])
+        + (c[0][0] * c[2][2] - c[0][2] * c[2][0])
+        + (c[1][1] * c[2][2] - c[1][2] * c[2][1])
+    )
+    d = _det3(c)
+    x = jnp.sqrt(sum(c[a][b] * c[a][b] for a in range(3) for b in range(3)))
+
+    def step(_, x):
+        return x - _safe_div(((x - t) * x + k) * x - d, (3.0 * x - 2.0 * t) * x + k)
+
+    x = jax.lax.fori_loop(0, _STEPS_SCATTER, step, x)
+    ok = x > 0
+    xs = jnp.where(ok, x, 1.0)
+    prod = d / xs
+    sum23 = jnp.maximum((k - prod) / xs, 0.0)
+    disc = jnp.maximum(sum23 * sum23 - 4.0 * prod, 0.0)
+    e2 = 0.5 * (sum23 + jnp.sqrt(disc))
+    return jnp.where(ok, jnp.clip(e2 / xs, 0.0, 1.0), 0.0)
+
+
+def _horn_matrix(s) -> list[list[Array]]:
+    """Horn's symmetric 4x4 matrix from S[a, b] = Σ w model_a measured_b (Horn 1987, eq. 4.13)."""
+    (sxx, sxy, sxz), (syx, syy, syz), (szx, szy, szz) = s
+    return [
+        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+    ]
+
+
+def _rotation_rows(q) -> list[list[Array]]:
+    """Rotation matrix entries R[a][b] of unit quaternions q = [w, x, y, z] (arrays)."""
+    w, x, y, z = q
+    return [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]

@@ -85,3 +85,45 @@ def tool_recording(n, m, *, noise=15e-6, occlusion=0.3, seed=0, radius=0.1):
                 t += run
         pos[hidden] = np.nan
     return pos, constellation, rot, trans
+
+
+# ------------------------------------------------- eigen-solver reference for Procrustes
+
+
+def procrustes_eigh_reference(model, measured, weights):
+    """Weighted Horn fit per frame with a dense 4x4 eigen-solver (the former kernel).
+
+    Returns numpy arrays (quaternion_wxyz with w >= 0, position, rms, n_used) for frames
+    with at least 3 used LEDs; NaN elsewhere. Independent of the closed-form kernel: no
+    quartic, no adjugate.
+    """
+    model = np.broadcast_to(model, measured.shape)
+    n = measured.shape[0]
+    quat = np.full((n, 4), np.nan)
+    pos = np.full((n, 3), np.nan)
+    rms = np.full(n, np.nan)
+    used_all = (weights > 0) & np.all(np.isfinite(measured), -1) & np.all(np.isfinite(model), -1)
+    for i in range(n):
+        used = used_all[i]
+        if used.sum() < 3:
+            continue
+        w = weights[i, used] / weights[i, used].sum()
+        p, y = model[i, used], measured[i, used]
+        p_bar, y_bar = w @ p, w @ y
+        s = np.einsum("k,ki,kj->ij", w, p - p_bar, y - y_bar)
+        (sxx, sxy, sxz), (syx, syy, syz), (szx, szy, szz) = s
+        horn = np.array(
+            [
+                [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+                [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+                [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+                [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+            ]
+        )
+        q = np.linalg.eigh(horn)[1][:, -1]
+        q = -q if q[0] < 0 else q
+        r = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix()
+        quat[i], pos[i] = q, y_bar - r @ p_bar
+        res = y - (p @ r.T + pos[i])
+        rms[i] = np.sqrt(w @ np.sum(res * res, -1))
+    return quat, pos, rms, used_all.sum(1)

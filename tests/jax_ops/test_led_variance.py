@@ -118,3 +118,17 @@ def test_windowed_range_is_zero_matches_naive():
         for j in range(3):
             vals = x[max(0, s - h) : s + h + 1, j][valid[max(0, s - h) : s + h + 1, j]]
             assert got[s, j] == (len(vals) == 0 or np.all(vals == vals[0]))
+
+
+@pytest.mark.parametrize("variant", ["paper", "pairwise"])
+def test_chunked_with_halo_matches_direct_loop(variant, monkeypatch):
+    # Chunks of 16 frames with a halo of 3: windows straddle chunk boundaries, and a
+    # partner drops out across one (the paper variant's per-chunk reference distance).
+    from robtraj.jax_ops import _led_variance as lv
+
+    monkeypatch.setattr(lv, "_CHUNK", 16)
+    pos, *_ = tool_recording(83, 6, occlusion=0.3, seed=31)  # 83 frames: a shape of its own
+    pos[40:, 2] = np.nan
+    want = REFERENCES[variant](pos, 7, 3)
+    got = led_variance(jnp.asarray(pos), 7, variant=variant)
+    _compare(got, want, rtol=3e-12)

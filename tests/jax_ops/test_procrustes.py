@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _jax_ops_reference import tool_recording
+from _jax_ops_reference import procrustes_eigh_reference, tool_recording
 from hypothesis import given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
@@ -256,3 +256,91 @@ def test_tracker_like_recording():
     assert ok.mean() > 0.9
     np.testing.assert_array_equal(ok, weights.sum(1) >= 3)
     np.testing.assert_allclose(np.asarray(fit.position)[ok], trans[ok], atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["near_pi", "flat", "mirror", "three_leds"])
+def test_closed_form_matches_eigen_solver_and_scipy_on_hard_frames(kind):
+    """18 LEDs, 30 % occluded, against the dense eigen-solver and scipy (1e-10).
+
+    near_pi: rotations 1e-9 .. 1e-2 rad short of 180° (quaternion w ≈ 0); flat: LEDs
+    within 1e-4 of a plane (relative); mirror: measured points mirrored, so the best
+    rotation fits badly and Newton starts far above λ1; three_leds: exactly 3 LEDs used.
+    """
+    model, measured, weights = _random_case(
+        60, 18, seed=77, near_pi=kind == "near_pi", occlusion=0.3
+    )
+    if kind == "flat":
+        model[:, 2] *= 1e-4
+        rot = Rotation.random(60, random_state=5).as_matrix()
+        measured = np.einsum("nij,mj->nmi", rot, model) + 0.3
+        measured += 20e-6 * np.random.default_rng(5).normal(size=measured.shape)
+        measured[weights == 0] = np.nan
+    if kind == "mirror":
+        measured = measured * np.array([1.0, -1.0, 1.0])
+    if kind == "three_leds":
+        weights[:, 3:] = 0.0
+    fit = weighted_procrustes(jnp.asarray(model), jnp.asarray(measured), jnp.asarray(weights))
+    quat, pos, rms, n_used = procrustes_eigh_reference(model, measured, weights)
+    assert np.all(np.asarray(fit.valid))
+    np.testing.assert_array_equal(np.asarray(fit.n_used), n_used)
+    r = np.asarray(quat_to_matrix(fit.quaternion_wxyz))
+    rot_ref, pos_ref = _scipy_fit(model, measured, weights)
+    np.testing.assert_allclose(r, rot_ref, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(fit.position), pos_ref, atol=1e-10)
+    r_eigh = Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix()
+    np.testing.assert_allclose(r, r_eigh, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(fit.position), pos, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(fit.rms), rms, rtol=1e-8, atol=1e-14)
+
+
+def test_blocks_of_a_long_recording_match_eigen_solver():
+    # More frames than one block of the kernel: padded and split into blocks.
+    pos, constellation, *_ = tool_recording(4100, 10, noise=15e-6, occlusion=0.3, seed=12)
+    weights = np.where(np.isfinite(pos[..., 0]), 1.0, 0.0)
+    fit = weighted_procrustes(jnp.asarray(constellation), jnp.asarray(pos), jnp.asarray(weights))
+    quat, p_ref, rms, n_used = procrustes_eigh_reference(constellation, pos, weights)
+    ok = np.asarray(fit.valid)
+    np.testing.assert_array_equal(ok, n_used >= 3)
+    r = np.asarray(quat_to_matrix(fit.quaternion_wxyz))[ok]
+    r_ref = Rotation.from_quat(quat[ok][:, [1, 2, 3, 0]]).as_matrix()
+    np.testing.assert_allclose(r, r_ref, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(fit.position)[ok], p_ref[ok], atol=1e-10)
+    np.testing.assert_allclose(np.asarray(fit.rms)[ok], rms[ok], rtol=1e-8)
+
+
+def test_condition_against_eigenvalues():
+    """`condition` = min(e2/e1 of the model scatter, (λ1 - λ2)/λ1 of Horn's matrix),
+    from dense eigenvalues: within 5 % where it is >= 0.01, and to 1e-6 relative near
+    collinearity (offsets 1e-3 .. 1e-1 of the line length), where it decides validity."""
+    rng = np.random.default_rng(40)
+    n, m = 40, 8
+    model = np.broadcast_to(0.1 * rng.normal(size=(m, 3)), (n, m, 3)).copy()
+    line = rng.normal(size=3)
+    off = 10.0 ** rng.uniform(-3, -1, size=(n // 2, 1, 1))
+    model[: n // 2] = np.linspace(0, 0.2, m)[:, None] * line + off * rng.normal(size=(m, 3))
+    rot = Rotation.random(n, random_state=4).as_matrix()
+    measured = np.einsum("nij,nmj->nmi", rot, model) + 1.0
+    measured += 1e-3 * rng.normal(size=measured.shape)
+    weights = rng.uniform(0.5, 2.0, size=(n, m))
+    fit = weighted_procrustes(jnp.asarray(model), jnp.asarray(measured), jnp.asarray(weights))
+    want = np.empty(n)
+    for i in range(n):
+        w = weights[i] / weights[i].sum()
+        pc, yc = model[i] - w @ model[i], measured[i] - w @ measured[i]
+        e = np.linalg.eigvalsh(np.einsum("k,ki,kj->ij", w, pc, pc))
+        (sxx, sxy, sxz), (syx, syy, syz), (szx, szy, szz) = np.einsum("k,ki,kj->ij", w, pc, yc)
+        horn = np.array(
+            [
+                [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+                [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+                [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+                [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+            ]
+        )
+        lam = np.linalg.eigvalsh(horn)
+        want[i] = min(e[1] / e[2], (lam[3] - lam[2]) / lam[3])
+    got = np.asarray(fit.condition)
+    big = want >= 0.01
+    assert big.sum() >= n // 2 and (~big).sum() >= 5
+    np.testing.assert_allclose(got[big], want[big], rtol=0.05)
+    np.testing.assert_allclose(got[~big], want[~big], rtol=1e-6)
