@@ -233,34 +233,39 @@ def path_statistics(
     at_all = np.full(use.size, np.nan)
     rt_all = np.full(use.size, np.nan)
     ci: dict[str, Interval] = {}
-    with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
-        warnings.simplefilter("ignore", RuntimeWarning)  # a resample can miss a plane
-        at_all[use], rt_all[use] = plane_at(x), plane_rt(x)
-        at_abc = np.nanmax(np.abs(np.nanmean(e, axis=0)), axis=0)
-        rt_abc = np.nanmax(3.0 * np.nanstd(e, axis=0, ddof=1), axis=0)
-        at_angle = float(np.nanmax(plane_angle(q0)))
-        ci["AT"] = studentized_interval(lambda xb: np.nanmax(plane_at(xb), -1), [x], rng, n_boot)
-        # RT: a maximum over planes of equal-valued RTs is biased up; simultaneous
-        # per-plane intervals bound it instead (`max_interval`)
-        k_planes = x.shape[1]
-        simultaneous = 1.0 - (1.0 - LEVEL) / max(k_planes, 1)
-        ok_p = np.all(np.isfinite(x), axis=-1)
-        ci["RT"] = max_interval([
-            rp_gaussian_interval(x[ok_p[:, i], i] - x[ok_p[:, i], i].mean(0), simultaneous)
-            for i in range(k_planes)
-        ])  # fmt: skip
-        for k, axis in enumerate("abc"):
-            ek = e[..., k]
-            ci[f"AT{axis}"] = studentized_interval(
-                lambda eb: np.nanmax(np.abs(np.nanmean(eb, -2)), -1), [ek], rng, n_boot
+    at_abc = rt_abc = np.full(3, np.nan)
+    at_angle = float("nan")
+    if use.any():  # otherwise no plane is crossed by two passes
+        with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)  # a resample can miss a plane
+            at_all[use], rt_all[use] = plane_at(x), plane_rt(x)
+            at_abc = np.nanmax(np.abs(np.nanmean(e, axis=0)), axis=0)
+            rt_abc = np.nanmax(3.0 * np.nanstd(e, axis=0, ddof=1), axis=0)
+            at_angle = float(np.nanmax(plane_angle(q0)))
+            ci["AT"] = studentized_interval(
+                lambda xb: np.nanmax(plane_at(xb), -1), [x], rng, n_boot
             )
-            ci[f"RT{axis}"] = max_interval([
-                pair(*three_s_interval(ek[np.isfinite(ek[:, i]), i], simultaneous))
+            # RT: a maximum over planes of equal-valued RTs is biased up; simultaneous
+            # per-plane intervals bound it instead (`max_interval`)
+            k_planes = x.shape[1]
+            simultaneous = 1.0 - (1.0 - LEVEL) / max(k_planes, 1)
+            ok_p = np.all(np.isfinite(x), axis=-1)
+            ci["RT"] = max_interval([
+                rp_gaussian_interval(x[ok_p[:, i], i] - x[ok_p[:, i], i].mean(0), simultaneous)
                 for i in range(k_planes)
             ])  # fmt: skip
-        ci["AT_angle"] = studentized_interval(
-            lambda qb: np.nanmax(plane_angle(qb), -1), [q0], rng, n_boot
-        )
+            for k, axis in enumerate("abc"):
+                ek = e[..., k]
+                ci[f"AT{axis}"] = studentized_interval(
+                    lambda eb: np.nanmax(np.abs(np.nanmean(eb, -2)), -1), [ek], rng, n_boot
+                )
+                ci[f"RT{axis}"] = max_interval([
+                    pair(*three_s_interval(ek[np.isfinite(ek[:, i]), i], simultaneous))
+                    for i in range(k_planes)
+                ])  # fmt: skip
+            ci["AT_angle"] = studentized_interval(
+                lambda qb: np.nanmax(plane_angle(qb), -1), [q0], rng, n_boot
+            )
     vm, vc = np.asarray(v_mean, np.float64), commanded_speed
     has_v = vm.size > 0 and vc > 0
     if has_v:
