@@ -114,7 +114,7 @@ def _covariance(doc: dict) -> dict | None:
 def parse_calibration(doc: Any, name: str = "CALIB.json"):
     """A `CalibrationResult` from the parsed JSON `doc`; `UserError` (prefixed `name`) on any
     schema defect."""
-    from .estimate._calib_result import CalibrationResult
+    from .estimate.calibration import CalibrationResult
 
     try:
         if not isinstance(doc, dict):

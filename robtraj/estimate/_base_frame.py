@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
-from ..calibration_file import load_calibration as load_calibration  # noqa: F401
 from ..jax_ops import quat_conjugate, quat_multiply, quat_rotate
 from ..recording import Recording
 from ._poses import PoseEstimate, estimate_poses
