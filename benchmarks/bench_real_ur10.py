@@ -15,6 +15,7 @@ import argparse
 import json
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -27,11 +28,16 @@ def main() -> None:
     ap.add_argument("--every-a", type=int, default=1)
     ap.add_argument("--every-b", type=int, default=1)
     ap.add_argument("--json", metavar="PATH")
+    ap.add_argument(
+        "--data",
+        default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "ipa-robot-accuracy"),
+        help="the ipa-robot-accuracy data set folder (default: ../shared/data/...)",
+    )
     a = ap.parse_args()
     t0 = time.perf_counter()
     series = {
-        "A": rd.load_series("A").every(a.every_a),
-        "B": rd.load_series("B").every(a.every_b),
+        "A": rd.load_series("A", a.data).every(a.every_a),
+        "B": rd.load_series("B", a.data).every(a.every_b),
     }
     wf = rd.run_workflow(
         series, progress=lambda m: print(f"{time.perf_counter() - t0:7.1f} s  {m}", flush=True)

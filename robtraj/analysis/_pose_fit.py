@@ -1,32 +1,26 @@
 """Pose-level fit of a UR10 to laser-tracker probe poses: the parameter layout, the
-measurement model through `robtraj.model`, identifiability, weights and a
-Levenberg–Marquardt solver (see `robtraj.analysis.real_data` for the model)."""
+measurement model through `robtraj.model`, its normal equations and weights; solved,
+with identifiability and covariance, by the package's one engine
+(`robtraj.estimate.solve`; see `robtraj.analysis.real_data` for the model)."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
 from .._errors import UserError
-from ..model import (
-    Effects,
-    camera_from_base_at,
-    flange_poses,
-    forward_kinematics,
-    gravity_torque,
-    ur10,
-)
+from ..estimate import covariance, identifiability, normal_at, solve
+from ..model import Effects, camera_from_base_at, forward_kinematics, ur10
+from ._pose_series import PoseSeries
 from ._quat import rotation_angle
-
-if TYPE_CHECKING:
-    from ._pose_series import PoseSeries
 
 #: order of the parameter vector after the 12 rigid parameters
 _EFFECT_ORDER = (
@@ -37,8 +31,6 @@ _EFFECT_ORDER = (
     "tracker_scale",
 )
 _TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
-#: relative singular value below which a direction is a null direction (exact degeneracy)
-_NULL_TOL = 1e-7
 #: which parameter of a null direction to fix first (the UR10's known degeneracies:
 #: joint-1 zero ≡ tracker yaw, d1 ≡ tracker z, joint-6 zero ≡ probe roll about the
 #: flange axis, d6/a6 ≡ probe offset, d2 + d3 + d4 along parallel axes 2–4 only as a
@@ -111,12 +103,6 @@ def _flange(eff: Effects, joints, torque) -> jaxlie.SE3:
     q = joints + eff.joint_offset + eff.joint_compliance * torque
     dh_delta = jnp.zeros_like(robot.dh).at[:, :2].set(eff.link_length)
     return jax.vmap(lambda qq: forward_kinematics(robot, qq, dh_delta))(q)
-
-
-def gravity_torques(joints: np.ndarray) -> np.ndarray:
-    """`(N, J)` gravity torques [N·m] of the nominal UR10 link-mass model."""
-    robot = ur10()
-    return np.asarray(jax.jit(jax.vmap(lambda q: gravity_torque(robot, q)))(jnp.asarray(joints)))
 
 
 def _predict(theta, z0, x0, joints, drift, torque):
@@ -246,18 +232,6 @@ class PoseFit:
         return error_summary(self.position_error, self.angle_error, noise_m)
 
 
-def _closed_form_start(series: PoseSeries) -> tuple[np.ndarray, np.ndarray]:
-    """Shah's robot-world/hand-eye solution on (at most 200) poses, nominal kinematics."""
-    from ..estimate.calibration import robot_world_hand_eye
-
-    robot = ur10()
-    sel = np.linspace(0, series.n - 1, min(series.n, 200)).astype(int)
-    q = jnp.asarray(series.joints[sel])
-    flange = jax.jit(flange_poses)(robot, Effects.zeros(6), q, jnp.zeros_like(q)).wxyz_xyz
-    z, x = robot_world_hand_eye(series.measured[sel], np.asarray(flange))
-    return np.asarray(z, float), np.asarray(x, float)
-
-
 def parse_effect_spec(spec: str) -> tuple[str, list[int] | None]:
     """``"joint_compliance"`` → all its parameters; ``"joint_compliance[1,2]"`` → only
     those elements (e.g. the joints that carry the arm's weight)."""
@@ -292,59 +266,6 @@ def _free_mask(estimate: Sequence[str], rigid: Sequence[str] = ("camera", "probe
         else:
             free[sl.start + np.asarray(idx)] = True
     return free
-
-
-def identifiability(jac: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
-    """Fix effect parameters along null directions of the column-scaled Jacobian.
-
-    Repeatedly: SVD of the free, unit-norm columns; for the smallest singular direction
-    below `_NULL_TOL`, fix the effect parameter (never a rigid one) with the largest
-    component and record what it is confounded with. Returns the reduced mask and a
-    report ``{"dropped": [{"parameter", "confounded_with"}], "condition": …}``.
-    """
-    names = parameter_names()
-    free = free.copy()
-    dropped = []
-    zero = [i for i in np.flatnonzero(free) if np.linalg.norm(jac[:, i]) == 0.0]
-    for i in zero:
-        if i >= 12:
-            free[i] = False
-            dropped.append({"parameter": names[i], "confounded_with": ["(no effect on the data)"]})
-    # A = Q·R: the singular values of any column subset of A are those of R's columns
-    norms = np.linalg.norm(jac, axis=0)
-    r_all = np.linalg.qr(jac / np.where(norms > 0, norms, 1.0), mode="r")
-    while True:
-        idx = np.flatnonzero(free)
-        _, s, vt = np.linalg.svd(r_all[:, idx], full_matrices=False)
-        rel = s / s[0]
-        if rel[-1] >= _NULL_TOL:
-            break
-        v = vt[-1]
-        cand = [(abs(v[k]), k) for k in range(idx.size) if idx[k] >= 12]
-        if not cand:
-            raise UserError("the rigid transforms alone are not identifiable from these poses")
-        big = max(c for c, _ in cand)
-        known = [
-            (FIX_PREFERENCE.index(names[idx[k]]), k)
-            for c, k in cand
-            if c >= 0.2 * big and names[idx[k]] in FIX_PREFERENCE
-        ]
-        k = min(known)[1] if known else max(cand)[1]
-        partners = [names[idx[m]] for m in np.argsort(-np.abs(v)) if m != k and abs(v[m]) > 0.05]
-        free[idx[k]] = False
-        dropped.append({"parameter": names[idx[k]], "confounded_with": partners})
-    idx = np.flatnonzero(free)
-    s = np.linalg.svd(r_all[:, idx], compute_uv=False)
-    # order-independent explanation: each fixed parameter's column as a combination of
-    # the free ones (unit-norm columns; coefficients above 0.05 are named, largest first)
-    for d in dropped:
-        i = names.index(d["parameter"])
-        if norms[i] == 0.0:
-            continue
-        coef = np.linalg.lstsq(r_all[:, idx], r_all[:, i], rcond=None)[0]
-        order = np.argsort(-np.abs(coef))
-        d["confounded_with"] = [names[idx[m]] for m in order if abs(coef[m]) > 0.05]
-    return free, {"dropped": dropped, "condition": float(s[0] / s[-1])}
 
 
 def _weights(series: PoseSeries, block_sigma: tuple[float, float]) -> np.ndarray:
@@ -392,93 +313,78 @@ def _rigid_residual(t12, z0, x0, flange, shift, scale, measured):
     return jnp.concatenate([dp, dr], -1)
 
 
-_rigid_residual_jit = jax.jit(_rigid_residual)
+class PoseData(eqx.Module):
+    """One series as the engine's ``data``: start transforms z0, x0 (``wxyz_xyz``),
+    joints, drift variable, gravity torques, measured poses and ``sqrt(w)`` `(N, 6)`.
+    `rigid_only`: only the 12 rigid parameters are differentiated (nominal fits,
+    cross-series refits); the effects are evaluated once."""
+
+    z0: Any
+    x0: Any
+    joints: Any
+    drift: Any
+    torque: Any
+    measured: Any
+    sqrt_w: Any
+    rigid_only: bool = eqx.field(static=True, default=False)
 
 
-@jax.jit
-def _rigid_jacobian_jit(t12, z0, x0, flange, shift, scale, measured):
-    r = _rigid_residual(t12, z0, x0, flange, shift, scale, measured)
-    return r, jax.jacfwd(_rigid_residual)(t12, z0, x0, flange, shift, scale, measured)
+def _pose_residual(theta, d: PoseData):
+    """`(N, 6)` unweighted residual (position [m], rotation vector [rad])."""
+    if d.rigid_only:
+        return _rigid_residual(
+            theta[:12], d.z0, d.x0, *_effect_part(theta, d.joints, d.drift, d.torque), d.measured
+        )
+    return _raw_residual(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
 
 
-class _Problem:
-    """Residual and Jacobian columns of one series; the rigid-only case (nominal model,
-    cross-series refits) differentiates only the 12 rigid parameters."""
-
-    def __init__(self, args, free):
-        self.args = args
-        self.idx = np.flatnonzero(free)
-        self.rigid_only = bool(np.all(self.idx < 12))
-        self._part = None
-
-    def _effects(self, theta):
-        if self._part is None:
-            z0, x0, joints, drift, torque, _ = self.args
-            self._part = _effect_part(jnp.asarray(theta), joints, drift, torque)
-        return self._part
-
-    def residual(self, theta) -> np.ndarray:
-        if self.rigid_only:
-            z0, x0, *_, measured = self.args
-            return np.asarray(
-                _rigid_residual_jit(
-                    jnp.asarray(theta[:12]), z0, x0, *self._effects(theta), measured
-                )
-            )
-        return np.asarray(_residual_jit(jnp.asarray(theta), *self.args))
-
-    def jacobian(self, theta) -> tuple[np.ndarray, np.ndarray]:
-        """Residual `(N, 6)` and Jacobian `(6N, len(idx))` of the free columns."""
-        if self.rigid_only:
-            z0, x0, *_, measured = self.args
-            r, j = _rigid_jacobian_jit(
-                jnp.asarray(theta[:12]), z0, x0, *self._effects(theta), measured
-            )
-            return np.asarray(r), np.asarray(j).reshape(-1, 12)[:, self.idx]
-        r, j = _jacobian_jit(jnp.asarray(theta), *self.args)
-        return np.asarray(r), np.asarray(j).reshape(-1, N_PARAMS)[:, self.idx]
+_pose_residual_jit = eqx.filter_jit(_pose_residual)
 
 
-def _lm(theta, free, args, w, max_iter=50):
-    """Levenberg–Marquardt on the weighted residuals over the `free` parameters.
+def pose_normal(theta, d: PoseData):
+    """``(H, b, cost)`` of the weighted pose residuals (`robtraj.estimate.solve`); the
+    Jacobian of a few thousand poses is small enough to form."""
+    if d.rigid_only:
+        part = _effect_part(theta, d.joints, d.drift, d.torque)
 
-    Returns ``(theta, residual (N, 6), Jacobian of the free columns, cost, iterations,
-    converged)``."""
-    prob = _Problem(args, free)
-    sw = np.sqrt(w).reshape(-1)
-    idx = prob.idx
-    lam = 1e-3
-    r, j = prob.jacobian(theta)
-    cost = float(np.sum((r.reshape(-1) * sw) ** 2))
-    it, converged = 0, False
-    for it in range(1, max_iter + 1):
-        a = j * sw[:, None]
-        b = r.reshape(-1) * sw
-        h = a.T @ a
-        g = a.T @ b
-        d = np.diag(h).copy()
-        improved = False
-        for _ in range(12):
-            step = np.linalg.solve(h + lam * np.diag(np.maximum(d, 1e-30)), -g)
-            trial = theta.copy()
-            trial[idx] += step
-            rt = prob.residual(trial)
-            ct = float(np.sum((rt.reshape(-1) * sw) ** 2))
-            if ct < cost:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            converged = True
-            break
-        rel = (cost - ct) / max(cost, 1e-300)
-        theta, cost = trial, ct
-        lam = max(lam / 10.0, 1e-12)
-        r, j = prob.jacobian(theta)
-        if rel < 1e-10:
-            converged = True
-            break
-    return theta, r, j, cost, it, converged
+        def r12(t12):
+            res = _rigid_residual(t12, d.z0, d.x0, *part, d.measured)
+            return (d.sqrt_w * res).reshape(-1)
+
+        r = r12(theta[:12])
+        j = (
+            jnp.zeros((r.shape[0], theta.shape[0]), r.dtype)
+            .at[:, :12]
+            .set(jax.jacfwd(r12)(theta[:12]))
+        )
+    else:
+
+        def rf(t):
+            return (
+                d.sqrt_w * _raw_residual(t, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
+            ).reshape(-1)
+
+        r = rf(theta)
+        j = jax.jacfwd(rf)(theta)
+    return j.T @ j, -(j.T @ r), r @ r
+
+
+def _data(z0, x0, series: PoseSeries, w: np.ndarray, rigid_only: bool) -> PoseData:
+    return PoseData(
+        *(
+            jnp.asarray(a)
+            for a in (z0, x0, series.joints, series.drift_variable, series.torque, series.measured)
+        ),
+        sqrt_w=jnp.asarray(np.sqrt(w)),
+        rigid_only=rigid_only,
+    )
+
+
+def _solve(theta, free, z0, x0, series, w, max_iter=50):
+    """The engine on the weighted residuals over the `free` parameters."""
+    data = _data(z0, x0, series, w, bool(np.all(np.flatnonzero(free) < 12)))
+    sol = solve(pose_normal, data, theta, free, n_residuals=6 * series.n, max_steps=max_iter)
+    return sol, data
 
 
 def fit_poses(
@@ -513,33 +419,36 @@ def fit_poses(
             # same probe mounting: carry the source's flange←probe over
             x0 = fixed.flange_from_probe
             theta[6:12] = 0.0
-    args = tuple(
-        jnp.asarray(a)
-        for a in (z0, x0, series.joints, series.drift_variable, series.torque, series.measured)
-    )
     free = _free_mask(estimate, rigid)
     if block_sigma is None:
         # block weights from the residuals of a first, rigid-only pass
-        t0, r0, *_ = _lm(theta.copy(), _free_mask((), rigid), args, _weights(series, (1e-3, 1e-3)))
-        block_sigma = _block_sigma(r0, series)
-        theta = t0
+        sol0, d0 = _solve(
+            theta.copy(), _free_mask((), rigid), z0, x0, series, _weights(series, (1e-3, 1e-3))
+        )
+        theta = sol0.theta
+        block_sigma = _block_sigma(np.asarray(_pose_residual_jit(jnp.asarray(theta), d0)), series)
     w = _weights(series, block_sigma)
     if np.any(free[12:]):
-        _, j0 = _Problem(args, np.ones(N_PARAMS, bool)).jacobian(theta)
-        free, ident = identifiability(j0 * np.sqrt(w).reshape(-1)[:, None], free)
-        theta = np.where(free | (np.arange(N_PARAMS) < 12), theta, 0.0)
+        h0 = np.asarray(
+            normal_at(pose_normal, jnp.asarray(theta), _data(z0, x0, series, w, False))[0]
+        )
+        droppable = np.arange(N_PARAMS) >= 12
+        free, ident = identifiability(h0, parameter_names(), free, droppable, prefer=FIX_PREFERENCE)
+        theta = np.where(free | ~droppable, theta, 0.0)
     else:
-        ident = {"dropped": [], "condition": float("nan")}
+        ident = {"dropped": [], "condition_number": float("nan")}
     if fixed is not None:
         theta[12:] = fixed.theta[12:]
-    theta, r, j, cost, iters, conv = _lm(theta, free, args, w, max_iter)
-    n_res = int(r.size)
-    idx = np.flatnonzero(free)
-    a = j * np.sqrt(w).reshape(-1)[:, None]
-    s2 = cost / max(1, n_res - idx.size)
-    sigma = np.full(N_PARAMS, np.nan)
-    sigma[idx] = np.sqrt(np.diag(np.linalg.pinv(a.T @ a)) * s2)
-    pred = np.asarray(_predict_jit(jnp.asarray(theta), *args[:5]))
+    sol, data = _solve(theta, free, z0, x0, series, w, max_iter)
+    theta = sol.theta
+    h = np.asarray(normal_at(pose_normal, jnp.asarray(theta), data)[0])
+    n_res = 6 * series.n
+    _, rank = covariance(h, free)
+    cov, _ = covariance(h, free, sol.cost / max(1, n_res - rank))
+    sigma = np.where(free, np.sqrt(np.clip(np.diag(cov), 0.0, None)), np.nan)
+    pred = np.asarray(
+        _predict_jit(jnp.asarray(theta), *(data.z0, data.x0, data.joints, data.drift, data.torque))
+    )
     pos, ang = pose_errors(pred, series.measured)
     return PoseFit(
         series=series.name,
@@ -549,14 +458,14 @@ def fit_poses(
         x0=np.asarray(x0),
         free=free,
         sigma=sigma,
-        chi2=cost,
+        chi2=sol.cost,
         n_residuals=n_res,
         block_sigma=tuple(float(b) for b in block_sigma),
         identifiability=ident,
         position_error=pos,
         angle_error=ang,
-        iterations=iters,
-        converged=conv,
+        iterations=sol.steps,
+        converged=sol.converged,
     )
 
 

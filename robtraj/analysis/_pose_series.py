@@ -1,4 +1,4 @@
-"""Laser-tracker pose series (``shared/data/ipa-robot-accuracy``): static UR10 poses,
+"""Laser-tracker pose series (the ``ipa-robot-accuracy`` data set): static UR10 poses,
 their joint angles and temperature, and the measured probe pose (tracker frame, m)."""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import jaxlie
 import numpy as np
 
 from .._errors import UserError
-from ._pose_fit import gravity_torques
+from ..estimate.calibration import robot_world_hand_eye
+from ..model import Effects, flange_poses, gravity_torque, ur10
 
 SERIES_FILES = {
     "A": "Series_A/measurements_grid.csv",
@@ -20,9 +21,21 @@ SERIES_FILES = {
 }
 
 
-def data_dir() -> Path:
-    """``shared/data/ipa-robot-accuracy`` next to the repository (may not exist)."""
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ipa-robot-accuracy"
+def gravity_torques(joints: np.ndarray) -> np.ndarray:
+    """`(N, J)` gravity torques [N·m] of the nominal UR10 link-mass model."""
+    robot = ur10()
+    return np.asarray(jax.jit(jax.vmap(lambda q: gravity_torque(robot, q)))(jnp.asarray(joints)))
+
+
+def closed_form_start(series: PoseSeries) -> tuple[np.ndarray, np.ndarray]:
+    """camera←base and flange←probe (``wxyz_xyz``): Shah's robot-world/hand-eye solution
+    on (at most 200) poses, nominal kinematics."""
+    robot = ur10()
+    sel = np.linspace(0, series.n - 1, min(series.n, 200)).astype(int)
+    q = jnp.asarray(series.joints[sel])
+    flange = jax.jit(flange_poses)(robot, Effects.zeros(6), q, jnp.zeros_like(q)).wxyz_xyz
+    z, x = robot_world_hand_eye(series.measured[sel], np.asarray(flange))
+    return np.asarray(z, float), np.asarray(x, float)
 
 
 # ----------------------------------------------------------------------------- data
@@ -53,9 +66,7 @@ class PoseSeries:
     def start(self) -> tuple[np.ndarray, np.ndarray]:
         """Closed-form camera←base and flange←probe (computed once)."""
         if "_start" not in self.__dict__:
-            from ._pose_fit import _closed_form_start
-
-            object.__setattr__(self, "_start", _closed_form_start(self))
+            object.__setattr__(self, "_start", closed_form_start(self))
         return self.__dict__["_start"]
 
     @property
@@ -99,13 +110,14 @@ def _wxyz_xyz_from_matrices(m: np.ndarray) -> np.ndarray:
     return np.asarray(jax.vmap(lambda a: jaxlie.SE3.from_matrix(a).wxyz_xyz)(jnp.asarray(m)))
 
 
-def load_series(name: str, root: str | Path | None = None) -> PoseSeries:
-    """Series ``"A"`` (grid) or ``"B"`` (joint configurations) through the pose-CSV importer."""
+def load_series(name: str, root: str | Path) -> PoseSeries:
+    """Series ``"A"`` (grid) or ``"B"`` (joint configurations) of the data set in `root`
+    (the ``ipa-robot-accuracy`` folder) through the pose-CSV importer."""
     from ..importers import load_pose_series
 
     if name not in SERIES_FILES:
         raise UserError(f"unknown series {name!r} (known: {', '.join(SERIES_FILES)})")
-    path = Path(root or data_dir()) / SERIES_FILES[name]
+    path = Path(root) / SERIES_FILES[name]
     if not path.is_file():
         raise UserError(f"{path}: no such file")
     joints, measured, _commanded, temperature, std = load_pose_series(path, preset="ipa-ur10")

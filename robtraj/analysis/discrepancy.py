@@ -83,6 +83,8 @@ class DiscrepancyResult:
     def to_json(self) -> dict[str, Any]:
         """DESIGN section 8: gap_before_m, steps, gap_after_m, unexplained (+ details)."""
         return {
+            "converged": bool(self.calibration.converged),
+            "convergence": self.calibration.convergence,
             "gap_before_m": self.gap_before_m,
             "steps": [
                 {
@@ -106,7 +108,7 @@ class DiscrepancyResult:
 
     def figures(self, out_dir: str | Path) -> list[Path]:
         """PNGs: the gap step by step, and the residual structure before and after."""
-        from ..report._discrepancy_figures import gap_figure, structure_figure
+        from ..report import gap_figure, structure_figure
 
         out = Path(out_dir)
         return [
@@ -171,8 +173,7 @@ def _static_noise(rec: Recording, angles: np.ndarray):
 
 def _observation_angles(rec: Recording) -> np.ndarray:
     """Emission angle [rad] of every LED observation `(N, M)` from per-frame poses."""
-    from ..estimate import estimate_poses
-    from ..estimate._poses import _emission_angles
+    from ..estimate import estimate_poses, led_emission_angles
 
     if rec.tool is None or rec.tool.normals is None:
         return np.zeros(rec.positions.shape[:2])
@@ -184,7 +185,7 @@ def _observation_angles(rec: Recording) -> np.ndarray:
         if i in tool_ids:
             normals[k] = rec.tool.normals[tool_ids.index(i)]
             const[k] = rec.tool.constellation[tool_ids.index(i)]
-    ang = _emission_angles(est.position, est.quaternion_wxyz, const, np.nan_to_num(normals))
+    ang = led_emission_angles(est.position, est.quaternion_wxyz, const, np.nan_to_num(normals))
     return np.where(rec.visible & est.valid[:, None], ang, np.nan)
 
 

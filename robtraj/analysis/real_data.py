@@ -1,7 +1,7 @@
 """Real measured data: calibrate a UR10 from laser-tracker pose measurements and find
 the effects its nominal model misses, validated across measurement series.
 
-Data: ``shared/data/ipa-robot-accuracy`` (UR10 + Leica laser tracker with a T-Mac
+Data: the ``ipa-robot-accuracy`` data set, path given by the caller (UR10 + Leica laser tracker with a T-Mac
 6-DOF probe; static poses, one measured probe pose each). See ``docs/real_ur10.md``.
 
 Measurement model (DESIGN section 5 at pose level, through the one forward model of
@@ -20,10 +20,11 @@ would otherwise estimate for points that are exact by construction.
 Parameters: a tangent-space correction of camera←base (6) and flange←probe (6) around
 a closed-form start (Shah's robot-world/hand-eye solution), and the `Effects` fields
 ``joint_offset`` (6), ``link_length`` (6×2 ``[Δd, Δa]``), ``joint_compliance`` (6),
-``thermal_drift`` (3) and ``tracker_scale`` (1). Identifiability: null directions of
-the column-scaled Jacobian name the parameters that cannot be told apart from the
-rigid transforms or from each other; those effect parameters are fixed at zero and
-reported (never the rigid transforms).
+``thermal_drift`` (3) and ``tracker_scale`` (1), solved by the package's one engine
+(`robtraj.estimate.solve`). Identifiability (`robtraj.estimate.identifiability`): null
+directions of the column-scaled normal matrix name the parameters that cannot be told
+apart from the rigid transforms or from each other; those effect parameters are fixed
+at zero and reported (never the rigid transforms).
 
 Weights: per block (position, rotation) the variance is ``std_i² + s²`` where
 ``std_i`` is the tracker's own standard deviation of pose i (Series B; zero where the
@@ -51,13 +52,12 @@ from ._pose_fit import (
     cross_predict,
     error_summary,
     fit_poses,
-    identifiability,
     parameter_names,
     parse_effect_spec,
     pose_errors,
     tracker_noise,
 )
-from ._pose_series import PoseSeries, data_dir, load_series, series_from_recording
+from ._pose_series import PoseSeries, load_series, series_from_recording
 
 __all__ = [
     "CANDIDATES",
@@ -66,10 +66,8 @@ __all__ = [
     "PoseSeries",
     "Workflow",
     "cross_predict",
-    "data_dir",
     "error_summary",
     "fit_poses",
-    "identifiability",
     "load_series",
     "parameter_names",
     "parse_effect_spec",

@@ -29,6 +29,8 @@ _COMMANDS = [
     "emulate",
     "record",
 ]
+#: commands that compile JAX kernels: they use the persistent compilation cache
+_COMPILING = {"demo", "poses", "calibrate", "iso9283", "deviation", "discrepancy", "report"}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -65,6 +67,10 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    if args.command in _COMPILING:
+        from .._jax_cache import enable_compilation_cache
+
+        enable_compilation_cache()
     try:
         code = args.func(args)
     except UserError as e:

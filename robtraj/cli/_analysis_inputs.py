@@ -38,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser, *, calibration_required: bool = Tr
 def load(args: argparse.Namespace, *, need_program: bool = True):
     """(recording, calibration, base-frame poses) for an analysis command."""
     from ..calibration_file import load_calibration
-    from ..estimate._base_frame import base_frame_poses
+    from ..estimate import base_frame_poses
     from ..recording import read_recording
 
     calib = load_calibration(args.calibration) if args.calibration else None

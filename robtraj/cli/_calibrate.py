@@ -9,6 +9,9 @@ from pathlib import Path
 from .._errors import UserError
 from . import _output
 
+#: exit status when the solve stopped before its convergence criterion held
+NOT_CONVERGED = 3
+
 
 def register(sub) -> argparse.ArgumentParser:
     from ..model import EFFECT_NAMES
@@ -17,9 +20,12 @@ def register(sub) -> argparse.ArgumentParser:
         "calibrate",
         help="calibrate camera, tool mount, LED constellation (and effects) jointly",
         description=(
-            "Bundle calibration (Levenberg-Marquardt over all frames): camera<-base, "
-            "flange<-tool, the LED constellation and optionally physical effects, with "
-            "covariances, from a closed-form start. Writes CALIB.json."
+            "Bundle calibration (Optimistix Levenberg-Marquardt over all frames): "
+            "camera<-base, flange<-tool, the LED constellation and optionally physical "
+            "effects, with covariances, from a closed-form start. Writes CALIB.json. "
+            "Exit status: 0 when the solve converged, 3 when it stopped before its "
+            "convergence criterion held (CALIB.json is still written, with "
+            '"converged": false and the reason), 2 on bad input.'
         ),
     )
     p.add_argument("recording", metavar="REC.h5", help="recording with robot log and tool")
@@ -46,6 +52,13 @@ def register(sub) -> argparse.ArgumentParser:
         metavar="PATH",
         help="also print the result as JSON (to PATH, or stdout without PATH)",
     )
+    p.add_argument(
+        "--max-steps",
+        type=int,
+        default=50,
+        metavar="N",
+        help="solver steps per solve before giving up (default 50; exit 3 when reached)",
+    )
     p.add_argument("--force", action="store_true", help="overwrite CALIB.json if it exists")
     p.set_defaults(func=run)
     return p
@@ -63,12 +76,14 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(
             f"unknown effect(s) in --estimate: {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})"
         )
+    if args.max_steps < 1:
+        raise UserError(f"--max-steps must be at least 1, not {args.max_steps}")
     rec = read_recording(args.recording)
     check_leds_seen(rec, args.recording)
     from ..estimate.calibration import fit
 
     with progress_status("calibrating") as say:
-        res = fit(rec, estimate=estimate, robust=args.robust, progress=say)
+        res = fit(rec, estimate=estimate, robust=args.robust, max_iter=args.max_steps, progress=say)
     doc = res.to_json()
     text = json.dumps(doc, indent=1)
     out = Path(args.out)
@@ -79,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     lines = [
         f"wrote {out}: {res.n_residuals // 3} LED observations, {res.n_params} parameters, "
         f"residual RMS {res.residual_rms_m * 1e6:.1f} µm, "
-        f"{'converged' if res.converged else 'NOT converged'} in {res.iterations} iterations",
+        f"{'converged' if res.converged else 'NOT converged'} in {res.iterations} steps",
         f"camera<-base position [{t[0]:.5f}, {t[1]:.5f}, {t[2]:.5f}] m "
         f"(σ {1e6 * max(s['camera_from_base.tx'], s['camera_from_base.ty'], s['camera_from_base.tz']):.1f} µm)",
     ]
@@ -93,8 +108,10 @@ def run(args: argparse.Namespace) -> int:
         )
     if res.outlier_frames is not None and res.outlier_frames.size:
         lines.append(f"{res.outlier_frames.size} outlier frames")
+    if not res.converged:
+        lines.append(f"NOT converged: {res.convergence}")
     print("\n".join(lines))
-    return 0 if res.converged else 1
+    return 0 if res.converged else NOT_CONVERGED
 
 
 def check_leds_seen(rec, name: str) -> None:

@@ -92,13 +92,10 @@ def _run(args: argparse.Namespace, out: Path) -> int:
 
     from ..analysis import write_tum
     from ..analysis.discrepancy import discover
-    from ..estimate import errors_against, estimate_poses, write_poses
-    from ..estimate._base_frame import base_frame_poses
+    from ..estimate import base_frame_poses, errors_against, estimate_poses, write_poses
     from ..estimate.calibration import fit
     from ..recording import write_recording
-    from ..report import weighting_figure
-    from ..report._html import Section
-    from ..report._recording_report import recording_report
+    from ..report import Section, recording_report, weighting_figure
     from ..sim import simulate
     from ._deviation import deviation_of
     from ._iso9283 import iso_of, print_table

@@ -7,6 +7,9 @@ from pathlib import Path
 
 from . import _output
 
+#: exit status when the solve stopped before its convergence criterion held
+NOT_CONVERGED = 3
+
 
 def register(sub) -> argparse.ArgumentParser:
     p = sub.add_parser(
@@ -18,7 +21,9 @@ def register(sub) -> argparse.ArgumentParser:
             "led_angle_bias, tracker_scale, thermal_drift) by a score test, refit with the "
             "best and name it when the likelihood-ratio test and BIC confirm it, with the "
             "noise measured at the static dwells; repeat; report structure that no library "
-            "effect explains."
+            "effect explains. Exit status: 0 when the final calibration converged, 3 when "
+            "its solve stopped before its convergence criterion held (result still written), "
+            "2 on bad input."
         ),
     )
     p.add_argument(
@@ -71,9 +76,11 @@ def run(args: argparse.Namespace) -> int:
             )
     else:
         print("no structured residual left beyond the noise")
+    if not doc["converged"]:
+        print(f"calibration NOT converged: {doc['convergence']}")
     _output.write_json(args.json, doc)
     if args.report:
         with _output.new_folder(args.report) as tmp:
             figs = [Path(args.report) / Path(f).relative_to(tmp) for f in res.figures(tmp)]
         print(f"figures: {', '.join(str(f) for f in figs)}")
-    return 0
+    return 0 if doc["converged"] else NOT_CONVERGED

@@ -65,7 +65,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
 
 def _pose_mapping(args: argparse.Namespace) -> dict[str, Any] | None:
     """A mapping dict built from --mapping and the column flags (None: none given)."""
-    from ..importers._pose_csv import load_mapping
+    from ..importers import load_mapping
 
     flags = {
         "position": args.position_cols,

@@ -79,11 +79,8 @@ def summarise(est, rec) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .._jax_cache import enable_compilation_cache
     from ..estimate import estimate_poses, write_poses
     from ..recording import read_recording
-
-    enable_compilation_cache()
 
     out = Path(args.out)
     rec = read_recording(args.recording)

@@ -28,7 +28,7 @@ def _inputs(args: argparse.Namespace, notes: list[str]):
     """(recording, calibration or None, base-frame poses or None): what can be had from
     this recording; what cannot goes to `notes`."""
     from ..calibration_file import load_calibration
-    from ..estimate._base_frame import base_frame_poses
+    from ..estimate import base_frame_poses
     from ..recording import read_recording
 
     rec = read_recording(args.recording)
@@ -64,7 +64,7 @@ def _inputs(args: argparse.Namespace, notes: list[str]):
 
 def run(args: argparse.Namespace) -> int:
     from ..analysis import write_tum
-    from ..report._recording_report import recording_report
+    from ..report import recording_report
     from ._deviation import deviation_of
     from ._iso9283 import iso_of, missing_characteristics
 

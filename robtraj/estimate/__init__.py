@@ -1,18 +1,23 @@
-"""Estimation: static segments, LED registration, weighting schemes, per-frame poses.
+"""Estimation: static segments, LED registration, weighting schemes, per-frame poses, and
+the one least-squares engine (`solve`, `identifiability`, `covariance`).
 
 Bundle calibration lives in `robtraj.estimate.calibration`.
 """
 
+from ._base_frame import base_frame_poses
 from ._poses import (
     PoseEstimate,
     chunked_led_variance,
     default_window,
     errors_against,
     estimate_poses,
+    led_emission_angles,
 )
 from ._poses_io import read_poses, write_poses
 from ._registration import Registration, register_leds
+from ._solve import LeastSquares, Solution, default_solver, normal_at, solve
 from ._static import static_segments
+from ._uncertainty import RCOND, column_scale, covariance, identifiability
 from ._weighting import (
     LedFeatures,
     get_weighting,
@@ -22,10 +27,21 @@ from ._weighting import (
 )
 
 __all__ = [
+    "RCOND",
+    "LeastSquares",
+    "Solution",
+    "column_scale",
+    "covariance",
+    "default_solver",
+    "identifiability",
+    "normal_at",
+    "solve",
     "LedFeatures",
     "PoseEstimate",
     "Registration",
+    "base_frame_poses",
     "chunked_led_variance",
+    "led_emission_angles",
     "default_window",
     "errors_against",
     "estimate_poses",

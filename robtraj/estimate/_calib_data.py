@@ -98,6 +98,14 @@ def prepare(
         )
     log_time = np.asarray(rec.robot.time, np.float64)
     joints = np.asarray(rec.robot.joints, np.float64)
+    bad = ~np.isfinite(log_time) | ~np.all(np.isfinite(joints), axis=1)
+    if bad.any():
+        raise UserError(
+            f"the robot log has {int(bad.sum())} samples with a non-finite time or joint angle "
+            f"(first at sample {int(np.argmax(bad))}): calibration needs finite joint angles"
+        )
+    if not np.all(np.isfinite(np.asarray(rec.time, np.float64))):
+        raise UserError("the tracker frames have non-finite time stamps (/tracker/time)")
 
     tool = rec.tool
     ref = np.asarray(tool.constellation if constellation is None else constellation, np.float64)
@@ -127,7 +135,9 @@ def prepare(
     frames = np.flatnonzero(frame_keep)
     pos, seen = pos[frames][:, led_keep], seen[frames][:, led_keep]
     if seen.sum() < 10:
-        raise UserError(f"only {int(seen.sum())} LED observations overlap the robot log")
+        raise UserError(
+            f"only {int(seen.sum())} finite LED observations overlap the robot log (need 10)"
+        )
 
     if rec.temperature is not None and np.all(np.isfinite(rec.temperature)):
         temp = np.asarray(rec.temperature, np.float64)

@@ -1,11 +1,12 @@
 """The bundle-calibration least-squares problem: parameters, residuals, chunked normal equations.
 
-Parameters (`BundleParams`) are tangent-space corrections around the current values held
-in the `BundleProblem` (the optimistix ``args``): camera←base and flange←tool are
-``current @ SE3.exp(delta)`` (jaxlie tangent order ``[tx, ty, tz, rx, ry, rz]``), the
-constellation is ``current + reshape(gauge_basis @ coefficients)`` and the free effects
-are ``current + delta``. Residuals are ``sqrt(w) · (measured − predicted)`` per LED
-coordinate, through the one forward model of `robtraj.model`.
+Parameters θ = [g, c] are corrections around the current values held in the
+`BundleProblem`: g holds camera←base and flange←tool as ``current @ SE3.exp(δ)`` (jaxlie
+tangent order ``[tx, ty, tz, rx, ry, rz]``) and the free effects as ``current + δ``; c
+the coefficients of the constellation basis (``current + reshape(basis @ c)``).
+Residuals are ``sqrt(w) · (measured − predicted)`` per LED coordinate, through the one
+forward model of `robtraj.model` (`residuals`); probe poses add 6-DOF pose residuals.
+`bundle_normal` is the problem as `robtraj.estimate._solve` takes it.
 
 For whole recordings the normal equations ``JᵀJ``, ``Jᵀr`` are accumulated chunk by chunk
 (`lax.scan` over chunks of frames, `jax.jacfwd` inside a chunk), never materialising the
@@ -15,6 +16,8 @@ and accumulated as per-LED blocks.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import equinox as eqx
 import jax
@@ -31,26 +34,14 @@ from ..model import (
     flange_poses,
     interpolate_joints,
     led_positions,
+    motion_direction,
 )
+from ._calib_data import CalibrationData
 
 #: effects that change the flange pose (the forward kinematics must be re-run per step)
 KINEMATIC_EFFECTS = ("time_offset", "joint_offset", "link_length", "joint_compliance", "backlash")
 #: effects that act on the LED positions given the tool pose
 LED_EFFECTS = ("led_angle_bias", "tracker_scale")
-
-
-class BundleParams(eqx.Module):
-    """Free parameters: corrections around the current values of a `BundleProblem`.
-
-    - `camera_from_base`, `flange_from_tool`: `(6,)` SE3 tangent (right perturbation).
-    - `constellation`: `(c,)` coefficients of the gauge basis (LED position corrections).
-    - `effects`: `(e,)` corrections of the free effects, flattened in `EFFECT_NAMES` order.
-    """
-
-    camera_from_base: Float[Array, "6"]
-    flange_from_tool: Float[Array, "6"]
-    constellation: Float[Array, " c"]
-    effects: Float[Array, " e"]
 
 
 class Frames(eqx.Module):
@@ -71,7 +62,6 @@ class BundleProblem(eqx.Module):
     camera_from_base: Float[Array, "7"]  # current wxyz_xyz
     flange_from_tool: Float[Array, "7"]
     constellation: Float[Array, "leds 3"]  # current LED positions in the tool frame
-    gauge_basis: Float[Array, "leds3 c"]
     normals: Float[Array, "leds 3"]
     effects: Effects  # current values of all effects (free and fixed)
     log_time: Float[Array, " k"]
@@ -125,25 +115,11 @@ def predict(g: Array, p: Array, problem: BundleProblem, frames: Frames) -> Array
     return led_positions(tool, eff, p, problem.normals)
 
 
-def flat_global(params: BundleParams) -> Array:
-    return jnp.concatenate([params.camera_from_base, params.flange_from_tool, params.effects])
-
-
-def constellation_of(params: BundleParams, problem: BundleProblem) -> Array:
-    return problem.constellation + (problem.gauge_basis @ params.constellation).reshape(-1, 3)
-
-
-def residuals(params: BundleParams, problem: BundleProblem, frames: Frames) -> Float[Array, " r"]:
-    """Weighted residuals ``sqrt(w)·(measured − predicted)``, flattened `(frames·leds·3,)`.
-
-    Pure, optimistix-compatible with ``args = (problem, frames)`` via `residual_fn`.
-    """
-    pred = predict(flat_global(params), constellation_of(params, problem), problem, frames)
-    return (frames.sqrt_weight[..., None] * (frames.measured - pred)).reshape(-1)
-
-
-def residual_fn(params: BundleParams, args: tuple[BundleProblem, Frames]) -> Array:
-    return residuals(params, *args)
+def _right_jacobian(x: Array) -> Array:
+    """`(6, 6)` right Jacobian of SE3: ``exp(x + δ) = exp(x)·exp(Jr(x)·δ + O(δ²))``."""
+    return jax.jacfwd(lambda d: (jaxlie.SE3.exp(x).inverse() @ jaxlie.SE3.exp(x + d)).log())(
+        jnp.zeros_like(x)
+    )
 
 
 def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
@@ -163,11 +139,12 @@ def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
     def xi(tool):
         return jax.vmap(lambda a, b: (a.inverse() @ b).log())(tool0, tool)
 
-    # pose columns at g = 0 (the problem is re-centred after every step): with
-    # T = S·cfb·exp(δc)·F·fft·exp(δf) (S the thermal shift), ξ = Ad((F·fft)⁻¹)·δc + δf
-    fft0 = jaxlie.SE3(problem.flange_from_tool)
-    ad = jax.vmap(lambda f: (f @ fft0).inverse().adjoint())(fl0)  # (C, 6, 6)
-    j_pose = jnp.concatenate([ad, jnp.broadcast_to(jnp.eye(6, dtype=ad.dtype), ad.shape)], -1)
+    # pose columns: with T = S·cfb·exp(gc + δc)·F·fft·exp(gf + δf) (S the thermal shift)
+    # and exp(g + δ) = exp(g)·exp(Jr(g)·δ), ξ = Ad((F·fft(gf))⁻¹)·Jr(gc)·δc + Jr(gf)·δf
+    _, fft, _ = _split(g, problem)
+    ad = jax.vmap(lambda f: (f @ fft).inverse().adjoint())(fl0)  # (C, 6, 6)
+    jr_c, jr_f = _right_jacobian(g[:6]), _right_jacobian(g[6:12])
+    j_pose = jnp.concatenate([ad @ jr_c, jnp.broadcast_to(jr_f, ad.shape)], -1)
     if g.shape[0] == 12:
         return tool0, j_pose
     j_eff = jax.jacfwd(lambda ge: xi(tool_poses(g.at[12:].set(ge), problem, frames)[0]))(g[12:])
@@ -354,3 +331,186 @@ def fixed_flange_poses(robot: RobotModel, effects: Effects, log_time, joints, ch
 
     _, out = jax.lax.scan(body, None, chunks)
     return out
+
+
+# ----------------------------------------------------------------------------- building
+
+
+def rigid_directions(reference: np.ndarray) -> np.ndarray:
+    """`(3m, 6)`: LED displacements of a small rigid motion ``[t, ω]`` (``t + ω × p``)."""
+    m = reference.shape[0]
+    a = np.zeros((m, 3, 6))
+    a[:, :, :3] = np.eye(3)
+    px, py, pz = reference.T
+    z = np.zeros(m)
+    # ω × p = −[p]× ω
+    a[:, :, 3:] = -np.stack(
+        [np.stack([z, -pz, py], -1), np.stack([pz, z, -px], -1), np.stack([-py, px, z], -1)], 1
+    )
+    return a.reshape(3 * m, 6)
+
+
+def gauge_basis(reference: np.ndarray, seen: np.ndarray, probe: bool) -> np.ndarray:
+    """`(3m, 3m)` basis of the constellation corrections: every coordinate of the seen
+    LEDs with probe data, else an orthonormal basis free of rigid motion of the
+    reference; unseen LEDs get no parameters (kept at the reference). Columns without
+    a direction are zero (fixed shapes: one compilation per LED count)."""
+    rows = np.repeat(seen, 3)
+    basis = np.zeros((3 * reference.shape[0], 3 * reference.shape[0]))
+    if probe:
+        basis[:, : rows.sum()] = np.eye(3 * reference.shape[0])[:, rows]
+        return basis
+    u, _, _ = np.linalg.svd(rigid_directions(reference[seen]), full_matrices=True)
+    basis[np.ix_(rows, np.arange(3 * int(seen.sum()) - 6))] = u[:, 6:]
+    return basis
+
+
+def chunk_size(n: int, chunk: int | None) -> int:
+    if chunk is not None:
+        return int(chunk)
+    return 256 if n <= 4096 else 1024 if n <= 65536 else 2048
+
+
+def chunked_frames(data: CalibrationData, sqrt_w: np.ndarray, size: int) -> Frames:
+    """The recording's frames as `(chunks, size, ...)` (the last chunk padded, weight 0)."""
+    n = data.n_frames
+    k = -(-n // size)
+    pad = k * size - n
+
+    def padded(a, fill_last=True):
+        a = np.asarray(a)
+        if pad:
+            tail = np.repeat(a[-1:], pad, axis=0) if fill_last else np.zeros((pad, *a.shape[1:]))
+            a = np.concatenate([a, tail])
+        return jnp.asarray(a.reshape(k, size, *a.shape[1:]))
+
+    return Frames(
+        time=padded(data.time),
+        direction=padded(data.direction),
+        drift=padded(data.drift),
+        measured=padded(data.measured),
+        sqrt_weight=padded(sqrt_w, fill_last=False),
+        base_from_flange=jnp.zeros((k, size, 7)),
+    )
+
+
+def with_weights(chunks: Frames, w: np.ndarray) -> Frames:
+    """`chunks` with the per-observation weights `w` `(frames, leds)` [1/m²]."""
+    k, size = chunks.time.shape[:2]
+    s = np.zeros((k * size, w.shape[1]))
+    s[: w.shape[0]] = np.sqrt(w)
+    return eqx.tree_at(lambda f: f.sqrt_weight, chunks, jnp.asarray(s.reshape(k, size, -1)))
+
+
+#: assumed probe uncertainty: position [m], rotation [rad]
+PROBE_SIGMA = (20e-6, 2e-4)
+
+
+class ProbeObservations(eqx.Module):
+    """6-DOF tool poses measured at `frames.time` (tracker clock): camera←tool
+    `probed` `(n, 7)` ``wxyz_xyz``, weighted by `PROBE_SIGMA`."""
+
+    frames: Frames
+    probed: Float[Array, "n 7"]
+
+
+def probe_observations(probe, data: CalibrationData, tau: float) -> ProbeObservations | None:
+    """The recording's `/probe` poses inside the robot log's time span (None without)."""
+    if probe is None or probe.time.shape[0] == 0:
+        return None
+    t = np.asarray(probe.time, float)
+    inside = (t + tau >= data.log_time[0]) & (t + tau <= data.log_time[-1])
+    if not inside.any():
+        return None
+    t = t[inside]
+    frames = Frames(
+        time=jnp.asarray(t),
+        direction=jnp.asarray(motion_direction(data.log_time, data.joints, t + tau)),
+        drift=jnp.asarray(np.interp(t, data.time, data.drift)),
+        measured=jnp.zeros((t.size, 0, 3)),
+        sqrt_weight=jnp.zeros((t.size, 0)),
+        base_from_flange=jnp.zeros((t.size, 7)),
+    )
+    probed = np.concatenate(
+        [probe.tool_pose.quaternion_wxyz[inside], probe.tool_pose.position[inside]], -1
+    )
+    return ProbeObservations(frames, jnp.asarray(probed))
+
+
+def _probe_terms(g, problem: BundleProblem, obs: ProbeObservations):
+    """Normal equations of the probe-pose residuals ``−W·log(probed⁻¹ · predicted)``
+    (forward kinematics re-run: the probe times are not tracker frames)."""
+    w = jnp.concatenate([jnp.full(3, 1 / PROBE_SIGMA[0]), jnp.full(3, 1 / PROBE_SIGMA[1])])
+    kin = dataclasses.replace(problem, kinematic=True)
+
+    def f(gg):
+        tool, _ = tool_poses(gg, kin, obs.frames)
+        err = jax.vmap(lambda a, b: (jaxlie.SE3(a).inverse() @ jaxlie.SE3(b)).log())(
+            obs.probed, tool.wxyz_xyz
+        )
+        return (w * err).reshape(-1)
+
+    r = -f(g)
+    j = jax.jacfwd(f)(g)
+    return j.T @ j, j.T @ r, jnp.sum(r * r)
+
+
+class BundleData(eqx.Module):
+    """What the normal equations of a bundle problem read besides θ: the problem at its
+    current values, the tracker frames in chunks, the constellation basis and the
+    optional probe poses."""
+
+    problem: BundleProblem
+    chunks: Frames
+    basis: Float[Array, "leds3 c"]
+    probe: ProbeObservations | None
+
+
+def split_theta(theta: Array, data: BundleData) -> tuple[Array, Array]:
+    """θ = [global (q), constellation coefficients (c)] → (g, LED positions `(m, 3)`)."""
+    c = data.basis.shape[1]
+    q = theta.shape[0] - c
+    p = data.problem.constellation + (data.basis @ theta[q:]).reshape(-1, 3)
+    return theta[:q], p
+
+
+def bundle_normal(theta: Array, data: BundleData):
+    """``(H, b, cost)`` of the bundle problem in θ (`robtraj.estimate._solve`): LED
+    observations accumulated over the chunks, plus the probe poses."""
+    g, p = split_theta(theta, data)
+    hgg, hgp, hpp, bg, bp, c = normal_equations(g, p, data.problem, data.chunks)
+    if data.probe is not None:
+        h2, b2, c2 = _probe_terms(g, data.problem, data.probe)
+        hgg, bg, c = hgg + h2, bg + b2, c + c2
+    q, m = hgg.shape[0], hpp.shape[0]
+    basis3 = data.basis.reshape(m, 3, -1)
+    hgp_b = hgp.reshape(q, 3 * m) @ data.basis
+    hpp_b = jnp.einsum("mac,mab,mbd->cd", basis3, hpp, basis3)
+    h = jnp.block([[hgg, hgp_b], [hgp_b.T, hpp_b]])
+    b = jnp.concatenate([bg, data.basis.T @ bp.reshape(-1)])
+    return 0.5 * (h + h.T), b, c
+
+
+def recentre(problem: BundleProblem, theta: np.ndarray, basis: np.ndarray) -> BundleProblem:
+    """Absorb a θ step into the problem's current values (θ = 0 is then the estimate)."""
+    d = jnp.asarray(theta)
+    q = d.shape[0] - basis.shape[1]
+    cfb = jaxlie.SE3(problem.camera_from_base) @ jaxlie.SE3.exp(d[:6])
+    fft = jaxlie.SE3(problem.flange_from_tool) @ jaxlie.SE3.exp(d[6:12])
+    eff = apply_effects(problem.effects, problem.free, d[12:q])
+    p = problem.constellation + (jnp.asarray(basis) @ d[q:]).reshape(-1, 3)
+    return eqx.tree_at(
+        lambda pr: (pr.camera_from_base, pr.flange_from_tool, pr.effects, pr.constellation),
+        problem,
+        (cfb.wxyz_xyz, fft.wxyz_xyz, eff, p),
+    )
+
+
+def residuals(theta: Array, data: BundleData) -> Float[Array, " r"]:
+    """Weighted LED residuals ``sqrt(w)·(measured − predicted)`` `(frames·leds·3,)` [m·√w]
+    at θ, all frames at once: the pure function whose chunk-accumulated normal equations
+    `bundle_normal` computes (``H = JᵀJ``, ``b = −Jᵀr`` with J the Jacobian of this)."""
+    g, p = split_theta(theta, data)
+    frames = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), data.chunks)
+    pred = predict(g, p, data.problem, frames)
+    return (frames.sqrt_weight[..., None] * (frames.measured - pred)).reshape(-1)

@@ -56,6 +56,8 @@ class CalibrationResult:
     identifiability: dict[str, Any]
     iterations: int
     converged: bool
+    #: why the solver stopped (the first solve that did not converge, if any)
+    convergence: str = ""
     chi2: float = float("nan")
     n_residuals: int = 0
     n_params: int = 0
@@ -118,6 +120,7 @@ class CalibrationResult:
             "log_likelihood": self.log_likelihood,
             "iterations": self.iterations,
             "converged": self.converged,
+            "convergence": self.convergence,
             "robust": self.robust,
             "residual_rms_per_led_m": {str(k): v for k, v in self.residual_rms_per_led.items()},
             "outlier_frames": []
@@ -162,6 +165,7 @@ class CalibrationResult:
                 identifiability=d.get("identifiability", {}),
                 iterations=int(d.get("iterations", 0)),
                 converged=bool(d.get("converged", False)),
+                convergence=str(d.get("convergence", "")),
                 chi2=float(d.get("chi2", float("nan"))),
                 n_residuals=int(d.get("n_residuals", 0)),
                 n_params=int(d.get("n_params", 0)),

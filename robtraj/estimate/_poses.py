@@ -127,8 +127,9 @@ def chunked_led_variance(
     return out
 
 
-def _emission_angles(position, quaternion_wxyz, constellation, normals):
-    """Emission angle [rad] of each LED toward the camera at the origin, per frame."""
+def led_emission_angles(position, quaternion_wxyz, constellation, normals):
+    """Emission angle [rad] `(frames, leds)` of each LED toward the camera at the origin of
+    the camera frame, from tool poses and the constellation/normals in the tool frame."""
     r = _quat_matrix(np.nan_to_num(quaternion_wxyz))
     leds = np.einsum("fij,mj->fmi", r, constellation) + position[:, None, :]
     nrm = np.einsum("fij,mj->fmi", r, normals)
@@ -383,7 +384,7 @@ def estimate_poses(
             if "emission_angle" in needs:
                 if normals is None:
                     raise UserError("emission_angle weighting needs LED normals in /tool")
-                angles = _emission_angles(fit.position, fit.quaternion_wxyz, const0, normals)
+                angles = led_emission_angles(fit.position, fit.quaternion_wxyz, const0, normals)
                 features = dataclasses.replace(features, emission_angle=jnp.asarray(angles))
             if "residual" in needs:
                 res = np.nan_to_num(residuals(fit, const0, positions))

@@ -24,6 +24,7 @@ from ._pose_csv import (
     PRESETS as PRESETS,
     import_pose_csv as import_pose_csv,
     import_pose_folder as import_pose_folder,
+    load_mapping as load_mapping,
     load_pose_series as load_pose_series,
 )
 
@@ -37,6 +38,7 @@ __all__ = [
     "import_pose_csv",
     "import_pose_folder",
     "load_constellation",
+    "load_mapping",
     "load_pose_series",
     "read_n3d",
 ]

@@ -108,12 +108,18 @@ def _dh_matrix(d, a, alpha, theta):
     )
 
 
+def _compose(a: Float[Array, "... 4 4"], b: Float[Array, "... 4 4"]) -> Float[Array, "... 4 4"]:
+    # elementwise products and a sum: under vmap XLA fuses it, where a batch of tiny
+    # matmuls is slow on CPU
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+
+
 def joint_frames(dh: Float[Array, "joints 4"], q: Float[Array, " joints"]) -> Float[Array, "n 4 4"]:
     """Homogeneous transforms base←frame_i for i = 0 … joints (frame 0 is the base)."""
 
     def step(t, row_q):
         row, qi = row_q
-        t = t @ _dh_matrix(row[0], row[1], row[2], qi + row[3])
+        t = _compose(t, _dh_matrix(row[0], row[1], row[2], qi + row[3]))
         return t, t
 
     eye = jnp.eye(4, dtype=q.dtype)
@@ -141,10 +147,13 @@ def gravity_torque(
     τ = −∂V/∂q with V the potential energy of the lumped link masses and the payload.
     """
 
+    last_from_flange = jaxlie.SE3(robot.last_from_flange).as_matrix()
+
     def potential(q):
-        origins = joint_frames(robot.dh, q)[:, :3, 3]
+        frames = joint_frames(robot.dh, q)
+        origins = frames[:, :3, 3]
         com = 0.5 * (origins[:-1] + origins[1:])
-        flange_z = forward_kinematics(robot, q).translation()[2]
+        flange_z = frames[-1, 2] @ last_from_flange[:, 3].astype(q.dtype)
         return g * (jnp.sum(robot.link_mass * com[:, 2]) + robot.payload_mass * flange_z)
 
     return -jax.grad(potential)(q)

@@ -1,5 +1,6 @@
 """Figures (PNG, matplotlib Agg) and the HTML report; the only place that imports matplotlib."""
 
+from ._discrepancy_figures import gap_figure as gap_figure, structure_figure as structure_figure
 from ._figures import (
     deviation_figure as deviation_figure,
     path_3d_figure as path_3d_figure,
@@ -19,3 +20,4 @@ from ._html import (
     iso_tables as iso_tables,
     write_report as write_report,
 )
+from ._recording_report import recording_report as recording_report

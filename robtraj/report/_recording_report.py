@@ -279,8 +279,7 @@ def recording_report(
     `Iso9283Result`) when they could be computed; `notes` (why something was left out)
     go to the summary's warnings.
     """
-    from ..estimate import chunked_led_variance, estimate_poses
-    from ..estimate._poses import default_window
+    from ..estimate import chunked_led_variance, default_window, estimate_poses
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,265 @@
+"""The one least-squares engine: Optimistix on chunk-accumulated normal equations.
+
+A problem is given by its normal equations, a pure function
+``normal(theta, data) -> (H, b, cost)`` with ``cost = Σ w r²`` (the weighted residual
+sum of squares of every observation), ``b = JᵀW r`` (so ``∇cost = −2b``) and
+``H = JᵀWJ``, accumulated however the observation kind likes (chunks of frames for whole
+recordings, the Jacobian of a few thousand poses at once). The Jacobian of the
+observations is never handed to the solver.
+
+The solver sees the *square-root information form* of the problem: with the column-scaled
+normal matrix ``Hs = VΛVᵀ`` (eigenvalues below `RCOND`·λ_max dropped), the residual
+
+    R(z) = [ −Λ^{-½} Vᵀ bs ,  sqrt(cost − bsᵀ Hs⁺ bs) ]       (p + 1 entries)
+
+with the declared Jacobian ``[Λ^{½} Vᵀ; 0]`` has ``|R|² = cost``, ``JᵀR = −bs`` (the exact
+gradient) and ``JᵀJ = Hs`` (the Gauss–Newton Hessian): any Optimistix least-squares
+solver (default: `optx.LevenbergMarquardt`, damped Newton descent in a classical trust
+region) then runs exactly its algorithm on the full problem, one pass over the
+observations per step, with linear algebra of the parameter count only.
+
+Column scaling and the free-parameter selection belong to the problem: the solver's
+variable is ``z = D·(θ − θ₀)`` on the free entries with D = sqrt(diag H / `DIAGONAL`) at
+the start (z is in units of 1000 conditional standard errors when the weights are inverse
+variances); fixed entries stay at θ₀.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from .._errors import UserError
+from ._uncertainty import RCOND, column_scale
+
+#: diagonal of the scaled normal matrix: Optimistix's trust region starts at damping
+#: λ = 1, i.e. 1/`DIAGONAL` of the diagonal (close to Gauss–Newton: the closed-form start
+#: is near the optimum; a rejected step raises the damping)
+DIAGONAL = 1e6
+#: termination: a step below `ATOL` in z (max norm; 1e-3 of a conditional standard error
+#: for inverse-variance weights — the next Gauss–Newton step is smaller still) together
+#: with a cost change below `ATOL` + `RTOL`·cost
+ATOL = 1e-3 / DIAGONAL**0.5
+RTOL = 1e-8
+#: relative rounding level of a cost summed over a whole recording: a step whose predicted
+#: and actual changes are both below it cannot be told from the optimum by the cost
+ROUNDING = 1e-12
+
+
+class LeastSquares(eqx.Module):
+    """The solver's view of a problem at one point ``z`` (the ``args`` of `_residual`):
+    the normal equations there, the column scale and the free mask."""
+
+    z: Float[Array, " p"]  # where `h`, `b`, `cost` were evaluated
+    h: Float[Array, "p p"]
+    b: Float[Array, " p"]
+    cost: Float[Array, ""]
+    theta0: Float[Array, " p"]
+    scale: Float[Array, " p"]  # column scale D
+    free: Float[Array, " p"]  # 1 free, 0 fixed
+
+    def theta(self, z: Float[Array, " p"]) -> Float[Array, " p"]:
+        return self.theta0 + self.free * z / self.scale
+
+
+def _compressed(z, problem: LeastSquares):
+    """Square-root information residual `(p + 1,)` and its Jacobian `(p + 1, p)` at
+    `problem.z` (NaN elsewhere: the normal equations are only known there)."""
+    f = problem.free / problem.scale
+    hs = problem.h * jnp.outer(f, f)
+    bs = problem.b * f
+    lam, v = jnp.linalg.eigh(0.5 * (hs + hs.T))
+    keep = lam > RCOND * lam[-1]
+    s = jnp.sqrt(jnp.where(keep, lam, 1.0))
+    jt = jnp.where(keep[:, None], s[:, None] * v.T, 0.0)
+    r = jnp.where(keep, -(v.T @ bs) / s, 0.0)
+    tail = jnp.sqrt(jnp.maximum(problem.cost - r @ r, 0.0))
+    res = jnp.concatenate([r, tail[None]])
+    jac = jnp.concatenate([jt, jnp.zeros((1, jt.shape[1]), jt.dtype)])
+    # a non-finite cost must not look like an optimum to the trust region
+    res = jnp.where(jnp.isfinite(problem.cost), res, jnp.inf)
+    res = jnp.where(jnp.all(z == problem.z), res, jnp.nan)
+    return res, jac
+
+
+@eqx.filter_custom_jvp
+def _residual(z, problem):
+    return _compressed(z, problem)[0]
+
+
+@_residual.def_jvp
+def _residual_jvp(primals, tangents):
+    z, problem = primals
+    dz, _ = tangents
+    res, jac = _compressed(z, problem)
+    return res, (jnp.zeros_like(res) if dz is None else jac @ dz)
+
+
+def _fn(z, problem):
+    return _residual(z, problem), None
+
+
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    """Outcome of `solve`: `theta` the estimate (NumPy), `cost` ``Σ w r²`` there,
+    `converged` True only when Optimistix's termination criterion held (step and cost
+    change below tolerance) on a finite cost; `reason` says why it stopped."""
+
+    theta: np.ndarray
+    cost: float
+    converged: bool
+    reason: str
+    steps: int
+
+
+@eqx.filter_jit
+def normal_at(normal: Callable, theta, data):
+    """``normal(theta, data)`` compiled (once per `normal` and data shape)."""
+    return normal(theta, data)
+
+
+def _initial_state(solver, p: int):
+    """Optimistix's initial state for `p` parameters, shared by every solve of that size
+    and solver (its static parts are compared by identity: one compilation of `_step`)."""
+    try:
+        return _shared_initial_state(solver, p)
+    except TypeError:  # a solver with array fields is not hashable: no sharing
+        return _new_initial_state(solver, p)
+
+
+def _new_initial_state(solver, p: int):
+    y = jnp.zeros(p)
+    return solver.init(
+        _fn, y, _placeholder(p), {}, jax.ShapeDtypeStruct((p + 1,), y.dtype), None, frozenset()
+    )
+
+
+_shared_initial_state = functools.lru_cache(maxsize=64)(_new_initial_state)
+
+
+def _placeholder(p: int) -> LeastSquares:
+    z = jnp.zeros(p)
+    return LeastSquares(z, jnp.eye(p), z, jnp.zeros(()), z, jnp.ones(p), jnp.ones(p))
+
+
+@eqx.filter_jit
+def _step(solver, z, problem: LeastSquares, state):
+    z, state, _ = solver.step(_fn, z, problem, {}, state, frozenset())
+    done, result = solver.terminate(_fn, z, problem, {}, state, frozenset())
+    return z, state, done, result, state.y_eval
+
+
+class TrustRegion(optx.ClassicalTrustRegion):
+    """`optx.ClassicalTrustRegion` that also accepts a step whose predicted and actual
+    cost changes are both below `ROUNDING` of the cost.
+
+    At the optimum of a cost summed over 10⁶–10⁷ residuals, the actual change of a
+    Gauss–Newton step is rounding noise of either sign; the classical rule then rejects
+    step after step (shrinking the region each time) until one happens to decrease the
+    cost, and Optimistix tests termination only on accepted steps. Accepting such a step
+    lets the step and cost-change criterion decide at once.
+    """
+
+    def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
+        step_size, accept, result, new_state = super().step(
+            first_step, y, y_eval, f_info, f_eval_info, state
+        )
+        y_diff = jax.tree.map(jnp.subtract, y_eval, y)
+        level = ROUNDING * jnp.abs(f_info.as_min())
+        flat = (-self.predict_reduction(y_diff, f_info) <= level) & (
+            f_eval_info.as_min() - f_info.as_min() <= level
+        )
+        keep = flat & ~accept
+        step_size = jnp.where(keep, state.step_size, step_size)
+        new_state = eqx.tree_at(lambda s: s.step_size, new_state, step_size)
+        return step_size, accept | flat, result, new_state
+
+
+def default_solver() -> optx.AbstractLeastSquaresSolver:
+    """Levenberg–Marquardt: Optimistix's damped Newton descent in `TrustRegion`."""
+    return eqx.tree_at(
+        lambda s: s.search, optx.LevenbergMarquardt(rtol=RTOL, atol=ATOL), TrustRegion()
+    )
+
+
+def solve(
+    normal: Callable,
+    data: Any,
+    theta0,
+    free,
+    *,
+    n_residuals: int | None = None,
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 50,
+) -> Solution:
+    """Minimise ``cost(θ)`` over the `free` entries of θ, starting at `theta0`.
+
+    - `normal(theta, data) -> (H, b, cost)`: pure and jit-compatible (module docstring);
+      define it at module level so that repeated solves share one compilation.
+    - `free`: `(p,)` bool mask; the other entries stay at `theta0`.
+    - `n_residuals`: number of scalar residuals behind `normal`; fewer than free
+      parameters is a `UserError`.
+    - `solver`: any Optimistix least-squares solver (default `default_solver()`).
+
+    Optimistix's own ``init``/``step``/``terminate`` run the algorithm; between steps the
+    normal equations are evaluated at the point the solver asks for (compiled once, apart
+    from the solver's small linear algebra), so a step costs one pass over the data.
+
+    A non-finite start (θ₀ or the cost there) is a `UserError`; a solve that stops
+    before Optimistix's criterion held returns ``converged=False`` with the reason.
+    """
+    theta0 = jnp.asarray(theta0, jnp.float64)
+    free = np.asarray(free, bool)
+    if n_residuals is not None and n_residuals < int(free.sum()):
+        raise UserError(
+            f"{n_residuals} residuals for {int(free.sum())} free parameters: the fit needs at "
+            "least as many observations as parameters"
+        )
+    if not np.all(np.isfinite(np.asarray(theta0))):
+        raise UserError("the start values are not finite")
+    h, b, cost = normal_at(normal, theta0, data)
+    if not (np.isfinite(float(cost)) and np.all(np.isfinite(np.asarray(h)))):
+        raise UserError("the cost at the start is not finite: non-finite observations or weights?")
+    solver = solver or default_solver()
+    p = theta0.shape[0]
+    z = jnp.zeros(p)
+    problem = LeastSquares(
+        z=z,
+        h=h,
+        b=b,
+        cost=cost,
+        theta0=theta0,
+        scale=jnp.asarray(column_scale(np.asarray(h)) / DIAGONAL**0.5),
+        free=jnp.asarray(free, theta0.dtype),
+    )
+    state = _initial_state(solver, p)
+    done, result, steps = False, optx.RESULTS.successful, 0
+    while steps < max_steps:
+        z, state, done, result, z_eval = _step(solver, z, problem, state)
+        steps += 1
+        if bool(done):
+            break
+        theta = problem.theta(z_eval)
+        h, b, cost = normal_at(normal, theta, data)
+        problem = eqx.tree_at(lambda q: (q.z, q.h, q.b, q.cost), problem, (z_eval, h, b, cost))
+    theta = problem.theta(z)
+    cost = float(jnp.sum(state.f_info.residual**2))  # |R|² = cost
+    ok = bool(done) and bool(result == optx.RESULTS.successful) and bool(np.isfinite(cost))
+    if ok:
+        reason = "step and cost change below tolerance"
+    elif not np.isfinite(cost):
+        reason = "non-finite cost"
+    elif not bool(done):
+        reason = f"no convergence in {max_steps} steps"
+    else:
+        reason = str(result).split("<", 1)[-1].rstrip(">") or "solver failed"
+    return Solution(np.array(theta), cost, ok, reason, steps)

@@ -1,0 +1,121 @@
+"""Identifiability and covariance from the normal matrix ``H = JᵀWJ`` at the optimum.
+
+Both work on the column-scaled matrix ``D⁻¹HD⁻¹`` (D = sqrt(diag H), unit diagonal), so
+that the threshold does not depend on the parameters' units. One threshold, `RCOND`:
+an eigenvalue below ``RCOND · λ_max`` of the scaled matrix is a null direction — the
+data do not tell that combination of parameters apart (a singular value of the
+unit-norm-column Jacobian below 1e-5 of the largest).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+#: relative eigenvalue of the column-scaled normal matrix below which a direction is null
+RCOND = 1e-10
+
+
+def column_scale(h: np.ndarray) -> np.ndarray:
+    """D = sqrt(diag H), with 1 for columns without information."""
+    d = np.sqrt(np.clip(np.diag(h), 0.0, None))
+    floor = 1e-12 * (d.max() if d.size and d.max() > 0 else 1.0)
+    return np.where(d > floor, d, 1.0)
+
+
+def _scaled(h: np.ndarray, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
+    return h[np.ix_(idx, idx)] / np.outer(d[idx], d[idx])
+
+
+def identifiability(
+    h: np.ndarray,
+    names: Sequence[str],
+    free: np.ndarray,
+    droppable: np.ndarray,
+    *,
+    prefer: Sequence[str] = (),
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Fix droppable parameters that lie in null directions of `h`; name them.
+
+    Repeatedly, for the smallest null direction of the free block: among its droppable
+    parameters with a component ≥ 0.2 of the largest, fix the first one listed in
+    `prefer`, else the one with the largest component. Each fixed parameter is reported
+    with what it is confounded with: the free parameters whose (unit-norm) columns
+    combine to its own with a coefficient above 0.05, largest first. Null directions
+    without a droppable parameter are reported in ``null_directions`` (the solve leaves
+    them unmoved, the covariance excludes them).
+
+    Returns the new free mask and ``{"condition_number", "rcond", "dropped",
+    "null_directions"}``.
+    """
+    free = np.asarray(free, bool).copy()
+    droppable = np.asarray(droppable, bool)
+    d = column_scale(h)
+    no_info = np.diag(h) <= 0
+    dropped: list[str] = []
+    unresolved: list[list[str]] = []
+    while True:
+        idx = np.flatnonzero(free)
+        lam, vec = np.linalg.eigh(_scaled(h, idx, d))
+        null = np.flatnonzero(lam < RCOND * lam[-1])
+        if not null.size:
+            break
+        v = np.abs(vec[:, null[0]])
+        cand = [k for k in np.flatnonzero(v >= 0.2 * v.max()) if droppable[idx[k]]]
+        if not cand:
+            unresolved = [
+                [
+                    names[idx[k]]
+                    for k in np.flatnonzero(np.abs(vec[:, j]) > 0.1 * np.abs(vec[:, j]).max())
+                ]
+                for j in null
+            ]
+            break
+        known = [(list(prefer).index(names[idx[k]]), k) for k in cand if names[idx[k]] in prefer]
+        k = min(known)[1] if known else max(cand, key=lambda c: v[c])
+        free[idx[k]] = False
+        dropped.append(names[idx[k]])
+    idx = np.flatnonzero(free)
+    hs = _scaled(h, idx, d)
+    lam = np.linalg.eigvalsh(hs)
+    good = lam[lam > RCOND * lam[-1]]
+    inv = np.linalg.pinv(hs, rcond=RCOND, hermitian=True)
+    report = []
+    for name in dropped:
+        i = list(names).index(name)
+        if no_info[i]:
+            report.append({"parameter": name, "confounded_with": ["(no effect on the data)"]})
+            continue
+        coef = inv @ (h[idx, i] / d[idx] / d[i])
+        order = np.argsort(-np.abs(coef))
+        report.append(
+            {
+                "parameter": name,
+                "confounded_with": [names[idx[m]] for m in order if abs(coef[m]) > 0.05],
+            }
+        )
+    return free, {
+        "condition_number": float(lam[-1] / good[0]) if good.size else float("inf"),
+        "rcond": RCOND,
+        "dropped": report,
+        "null_directions": unresolved,
+    }
+
+
+def covariance(h: np.ndarray, free: np.ndarray, s2: float = 1.0) -> tuple[np.ndarray, int]:
+    """``s² · H⁺`` on the free block (zero rows and columns elsewhere) and its rank.
+
+    The pseudo-inverse is taken of the column-scaled block, leaving out its null
+    directions (`RCOND`); ``s² = χ²/(n − rank)`` makes it the covariance of a fit whose
+    weights are known only up to a common factor.
+    """
+    idx = np.flatnonzero(free)
+    d = column_scale(h)
+    lam, vec = np.linalg.eigh(_scaled(h, idx, d))
+    keep = lam > RCOND * lam[-1]
+    inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
+    out = np.zeros_like(h, dtype=float)
+    out[np.ix_(idx, idx)] = s2 * inv / np.outer(d[idx], d[idx])
+    return out, int(keep.sum())

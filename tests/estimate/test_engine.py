@@ -1,0 +1,144 @@
+"""The one least-squares engine (`robtraj.estimate.solve`) against independent references:
+linear least squares (NumPy), a nonlinear fit (scipy), the chunked bundle normal
+equations against automatic differentiation of the pure residual function."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+from scipy.optimize import least_squares
+
+from robtraj import UserError
+from robtraj.estimate import covariance, identifiability, normal_at, solve
+
+
+def _linear_normal(theta, data):
+    a, y, sw = data
+    r = sw * (y - a @ theta)
+    j = sw[:, None] * a
+    return j.T @ j, j.T @ r, r @ r
+
+
+def _exp_residual(theta, t, y):
+    return y - theta[0] * jnp.exp(-theta[1] * t) - theta[2]
+
+
+def _exp_normal(theta, data):
+    t, y = data
+    r = _exp_residual(theta, t, y)
+    j = -jax.jacfwd(_exp_residual)(theta, t, y)  # Jacobian of the prediction
+    return j.T @ j, j.T @ r, r @ r
+
+
+@pytest.fixture(scope="module")
+def linear():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(40, 4)) * np.array([1.0, 1e3, 1e-3, 5.0])  # badly scaled columns
+    y = a @ np.array([0.3, -2e-3, 400.0, 1.0]) + rng.normal(0, 0.1, 40)
+    sw = rng.uniform(0.5, 2.0, 40)
+    return jnp.asarray(a), jnp.asarray(y), jnp.asarray(sw)
+
+
+def test_linear_least_squares_matches_numpy(linear):
+    a, y, sw = (np.asarray(x) for x in linear)
+    sol = solve(_linear_normal, linear, np.zeros(4), np.ones(4, bool), n_residuals=40)
+    ref = np.linalg.lstsq(sw[:, None] * a, sw * y, rcond=None)[0]
+    assert sol.converged, sol.reason
+    np.testing.assert_allclose(sol.theta, ref, rtol=1e-9)
+    np.testing.assert_allclose(sol.cost, np.sum((sw * (y - a @ ref)) ** 2), rtol=1e-9)
+
+
+def test_fixed_parameters_stay_and_the_rest_is_the_reduced_optimum(linear):
+    a, y, sw = (np.asarray(x) for x in linear)
+    theta0 = np.array([0.0, 0.0, 123.0, 0.0])
+    free = np.array([True, True, False, True])
+    sol = solve(_linear_normal, linear, theta0, free)
+    ref = np.linalg.lstsq((sw[:, None] * a)[:, free], sw * (y - a[:, 2] * 123.0), rcond=None)[0]
+    assert sol.theta[2] == 123.0
+    np.testing.assert_allclose(sol.theta[free], ref, rtol=1e-9)
+
+
+def test_nonlinear_fit_matches_scipy_and_any_optimistix_solver_runs():
+    rng = np.random.default_rng(1)
+    t = np.linspace(0, 4, 60)
+    y = 2.0 * np.exp(-1.3 * t) + 0.5 + rng.normal(0, 0.01, t.size)
+    data = (jnp.asarray(t), jnp.asarray(y))
+    x0 = np.array([1.0, 0.5, 0.0])
+    ref = least_squares(lambda p: np.asarray(_exp_residual(jnp.asarray(p), *data)), x0, xtol=1e-14)
+    for solver in (None, optx.GaussNewton(rtol=1e-10, atol=1e-12), optx.Dogleg(1e-10, 1e-12)):
+        sol = solve(_exp_normal, data, x0, np.ones(3, bool), solver=solver)
+        assert sol.converged, (solver, sol.reason)
+        np.testing.assert_allclose(sol.theta, ref.x, rtol=1e-7, atol=1e-9)
+
+
+def test_stopping_early_is_not_convergence():
+    t = np.linspace(0, 4, 60)
+    data = (jnp.asarray(t), jnp.asarray(2.0 * np.exp(-1.3 * t) + 0.5))
+    sol = solve(_exp_normal, data, np.array([1.0, 0.5, 0.0]), np.ones(3, bool), max_steps=2)
+    assert not sol.converged and "2 steps" in sol.reason
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [("few", "2 residuals for 3 free parameters"), ("nan", "not finite")],
+)
+def test_bad_input_is_a_one_line_user_error(case, message):
+    t = np.linspace(0, 1, 2 if case == "few" else 10)
+    y = np.where(np.arange(t.size) == 1, np.nan if case == "nan" else 0.0, 1.0)
+    with pytest.raises(UserError, match=message) as e:
+        solve(
+            _exp_normal,
+            (jnp.asarray(t), jnp.asarray(y)),
+            np.ones(3),
+            np.ones(3, bool),
+            n_residuals=t.size,
+        )
+    assert "\n" not in str(e.value)
+
+
+def test_identifiability_names_an_exact_null_direction_and_covariance_excludes_it():
+    rng = np.random.default_rng(2)
+    j = rng.normal(size=(30, 3))
+    j = np.column_stack([j, 2.0 * j[:, 0] - 3.0 * j[:, 1]])  # column 3 = 2·c0 − 3·c1
+    h = j.T @ j
+    names = ["a", "b", "c", "d"]
+    droppable = np.array([False, False, False, True])
+    free, rep = identifiability(h, names, np.ones(4, bool), droppable)
+    assert list(free) == [True, True, True, False]
+    assert rep["dropped"] == [{"parameter": "d", "confounded_with": ["b", "a"]}]
+    cov, rank = covariance(h, free, 2.0)
+    assert rank == 3 and np.all(cov[3] == 0)
+    np.testing.assert_allclose(cov[:3, :3], 2.0 * np.linalg.inv(h[:3, :3]), rtol=1e-8)
+
+
+def test_bundle_normal_equations_are_those_of_the_pure_residuals():
+    """Chunk-accumulated ``JᵀJ``, ``Jᵀr`` at a θ away from the current values (where the
+    SE3 corrections need their right Jacobian) equal those of `residuals` through
+    `jax.jacfwd` over all frames at once."""
+    from robtraj.estimate import calibration as cal
+    from robtraj.sim import simulate
+
+    rec = simulate("paper", seed=0, duration=8.0, rate=25.0)
+    st = cal._setup(rec, ("time_offset", "joint_offset"), None, None, 16, lambda _m: None)
+    rng = np.random.default_rng(3)
+    theta = np.zeros(len(st.names_theta))
+    theta[:12] = rng.normal(0, 2e-3, 12)
+    theta[12 : st.q] = rng.normal(0, 1e-4, st.q - 12)
+    theta[st.q :] = rng.normal(0, 1e-4, theta.size - st.q) * st.has_column[st.q :]
+    theta = jnp.asarray(theta)
+    h, b, c = normal_at(cal.bundle_normal, theta, st.bundle)  # compiled by `_setup`
+    r = eqx.filter_jit(cal.residuals)(theta, st.bundle)
+    j = -eqx.filter_jit(jax.jacfwd(cal.residuals))(theta, st.bundle)
+    np.testing.assert_allclose(c, r @ r, rtol=1e-10)
+    scale = np.sqrt(np.diag(np.asarray(j.T @ j)))
+    scale = np.where(scale > 0, scale, 1.0)  # padding columns of the constellation basis
+    np.testing.assert_allclose(
+        np.asarray(h) / np.outer(scale, scale),
+        np.asarray(j.T @ j) / np.outer(scale, scale),
+        atol=1e-9,
+    )
+    np.testing.assert_allclose(
+        np.asarray(b) / scale, np.asarray(j.T @ r) / scale, atol=1e-9 * np.sqrt(float(c))
+    )
