@@ -133,7 +133,10 @@ def prepare(
     never = ~seen[inside].any(0) & have
     frame_keep = inside & seen.any(1)
     frames = np.flatnonzero(frame_keep)
-    pos, seen = pos[frames][:, led_keep], seen[frames][:, led_keep]
+    pos, seen = pos[frames], seen[frames]
+    if not led_keep.all():
+        pos, seen = pos[:, led_keep], seen[:, led_keep]
+    pos[~seen] = 0.0  # a copy: the recording's arrays are not touched
     if seen.sum() < 10:
         raise UserError(
             f"only {int(seen.sum())} finite LED observations overlap the robot log (need 10)"
@@ -156,7 +159,7 @@ def prepare(
         robot=robot,
         time=t[frames],
         frame=frames,
-        measured=np.where(seen[..., None], pos, 0.0),
+        measured=pos,
         seen=seen,
         direction=np.asarray(direction, np.float64),
         drift=drift,

@@ -206,7 +206,7 @@ def test_report_failure_leaves_no_partial_folder(tmp_path, capsys, inputs, monke
         calls.append(out)
         raise RuntimeError("disk trouble")
 
-    monkeypatch.setattr("robtraj.report._recording_report.recording_report", failing_report)
+    monkeypatch.setattr("robtraj.report.recording_report", failing_report)
     monkeypatch.setattr(
         "robtraj.cli._analysis_inputs.load",
         lambda args, need_program=True: (small_recording(), None, None),
