@@ -10,7 +10,9 @@ the fields the analysis needs and turns every defect into one `UserError` naming
   at least 3 distinct LEDs;
 - optional: ``time_offset`` (s), ``residual_rms_m`` and ``noise_sigma_m`` (m, >= 0 or
   null), ``effects`` (names of `robtraj.model.EFFECT_NAMES`, finite values), ``covariance``
-  (null, or ``{"parameters": [..], "matrix": [[..]]}`` square of that size, finite).
+  (null, or ``{"parameters": [..], "matrix": [[..]]}`` square of that size, finite),
+  ``identifiability`` (an object; its ``undetermined``, if given, a list of parameter
+  names the calibration's recording did not determine: the analyses warn about them).
 """
 
 from __future__ import annotations
@@ -133,6 +135,12 @@ def parse_calibration(doc: Any, name: str = "CALIB.json"):
         clean.pop("covariance", None)
         if cov is not None:
             clean["covariance"] = cov
+        ident = doc.get("identifiability", {})
+        if not isinstance(ident, dict):
+            raise UserError("'identifiability' must be an object")
+        und = ident.get("undetermined", [])
+        if not isinstance(und, list) or not all(isinstance(n, str) for n in und):
+            raise UserError("identifiability.undetermined must be a list of parameter names")
         gauge = doc.get("gauge")
         if isinstance(gauge, dict) and "reference_constellation" in gauge:
             ref = _numbers(gauge["reference_constellation"], None, "gauge.reference_constellation")

@@ -58,7 +58,28 @@ def load(args: argparse.Namespace, *, need_program: bool = True):
     if not np.any(bf.valid):
         raise UserError(f"{args.recording}: no frame has a tool pose with this calibration")
     check_same_setup(rec, calib, bf, args.recording)
+    warn_undetermined(calib, str(args.calibration or "the calibration"), "the result depends")
     return rec, calib, bf
+
+
+def undetermined_rigid(calib) -> list[str]:
+    """camera←base and flange←tool parameters that `calib`'s recording did not determine."""
+    names = (getattr(calib, "identifiability", None) or {}).get("undetermined", [])
+    return [n for n in names if n.startswith(("camera_from_base.", "flange_from_tool."))]
+
+
+def warn_undetermined(calib, name: str, consequence: str) -> None:
+    """One warning line on stderr when `calib` leaves a rigid transform undetermined."""
+    import sys
+
+    bad = undetermined_rigid(calib)
+    if bad:
+        print(
+            f"robtraj: warning: {name} does not determine {', '.join(bad)} (the recording it "
+            f"came from cannot tell them apart); {consequence} on them by an unknown amount: "
+            "calibrate on a run with reorientations about two axes",
+            file=sys.stderr,
+        )
 
 
 def setup_discrepancy(rec, calib, bf) -> float | None:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from .._errors import UserError
 from . import _output
+from ._analysis_inputs import warn_undetermined
 
 #: exit status when the solve stopped before its convergence criterion held
 NOT_CONVERGED = 3
@@ -65,6 +66,8 @@ def register(sub) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from .._progress import progress_status
     from ..model import EFFECT_NAMES
     from ..recording import read_recording
@@ -91,12 +94,13 @@ def run(args: argparse.Namespace) -> int:
     _output.write_text(args.json, text)
     s = res.sigma
     t = res.camera_from_base.position
+    s_cfb = max(s["camera_from_base.tx"], s["camera_from_base.ty"], s["camera_from_base.tz"])
     lines = [
         f"wrote {out}: {res.n_residuals // 3} LED observations, {res.n_params} parameters, "
         f"residual RMS {res.residual_rms_m * 1e6:.1f} µm, "
         f"{'converged' if res.converged else 'NOT converged'} in {res.iterations} steps",
         f"camera<-base position [{t[0]:.5f}, {t[1]:.5f}, {t[2]:.5f}] m "
-        f"(σ {1e6 * max(s['camera_from_base.tx'], s['camera_from_base.ty'], s['camera_from_base.tz']):.1f} µm)",
+        + (f"(σ {1e6 * s_cfb:.1f} µm)" if np.isfinite(s_cfb) else "(σ: not determined)"),
     ]
     if "time_offset" in res.estimated:
         lines.append(
@@ -111,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
     if not res.converged:
         lines.append(f"NOT converged: {res.convergence}")
     print("\n".join(lines))
+    warn_undetermined(res, str(out), "iso9283, deviation and report results depend")
     return 0 if res.converged else NOT_CONVERGED
 
 

@@ -70,7 +70,11 @@ def run(args: argparse.Namespace) -> int:
     rec, calib, bf = _analysis_inputs.load(args)
     res = iso_of(rec, bf)
     print_table(res)
-    _analysis_inputs.write_json(args.json, res.to_json())
+    doc = {
+        **res.to_json(),
+        "calibration_undetermined": _analysis_inputs.undetermined_rigid(calib),
+    }
+    _analysis_inputs.write_json(args.json, doc)
     return report_missing(res)
 
 

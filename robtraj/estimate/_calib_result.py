@@ -38,7 +38,9 @@ class CalibrationResult:
     and ``flange_from_tool.{tx..rz}`` (tangent space at the estimate, right
     perturbation ``T̂ @ exp(δ)``), then each estimated effect entry (e.g.
     ``joint_offset[2]``, ``link_length[1].a``), then ``constellation[LED k].{x,y,z}``.
-    Fixed (dropped or not estimated) parameters have zero variance.
+    Fixed (dropped or not estimated) parameters have zero variance; the covariance of
+    parameters in a null direction of the data (``identifiability["undetermined"]``) is
+    that of the minimum-norm solution and means nothing: `sigma` gives them inf.
     """
 
     camera_from_base: Pose
@@ -80,8 +82,13 @@ class CalibrationResult:
 
     @property
     def sigma(self) -> dict[str, float]:
-        """Standard deviation per parameter name."""
-        return dict(zip(self.parameter_names, np.sqrt(np.clip(np.diag(self.covariance), 0, None))))
+        """Standard deviation per parameter name (inf for the parameters the recording does
+        not determine, ``identifiability["undetermined"]``)."""
+        out = dict(zip(self.parameter_names, np.sqrt(np.clip(np.diag(self.covariance), 0, None))))
+        for name in (self.identifiability or {}).get("undetermined", []):
+            if name in out:
+                out[name] = float("inf")
+        return out
 
     def effects_module(self, n_joints: int = 6) -> Effects:
         return Effects.from_dict(self.effects, n_joints)

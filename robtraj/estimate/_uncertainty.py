@@ -48,7 +48,10 @@ def identifiability(
     them unmoved, the covariance excludes them).
 
     Returns the new free mask and ``{"condition_number", "rcond", "dropped",
-    "null_directions"}``.
+    "null_directions", "undetermined"}``; ``undetermined`` lists, in `names` order, the
+    free parameters with a component above 0.1 of the largest in a null direction: the
+    data do not determine them (their variance is not finite, whatever the
+    pseudo-inverse gives).
     """
     free = np.asarray(free, bool).copy()
     droppable = np.asarray(droppable, bool)
@@ -101,6 +104,7 @@ def identifiability(
         "rcond": RCOND,
         "dropped": report,
         "null_directions": unresolved,
+        "undetermined": [n for n in names if any(n in group for group in unresolved)],
     }
 
 

@@ -111,6 +111,9 @@ def _mutations():
             lambda v: (f"residual_rms_m={v!r}", setter(("residual_rms_m",), v))
         ),
         st.just(("unknown effect", setter(("effects",), {"gravity_waves": 1.0}))),
+        st.one_of(
+            st.just([]), st.just("none"), st.just({"undetermined": "camera_from_base.tx"})
+        ).map(lambda v: (f"identifiability={v!r}", setter(("identifiability",), v))),
     )
 
 

@@ -94,3 +94,31 @@ def test_setup_discrepancy_of_the_true_calibration_is_at_noise_level(setup):
     moved = load_calibration(d / "moved.json")
     shifted = _analysis_inputs.setup_discrepancy(rec, moved, bf)
     assert abs(shifted - np.linalg.norm(SHIFT)) < 2e-4 + got
+
+
+def test_a_calibration_that_leaves_the_tool_frame_undetermined_is_warned_about(
+    setup, capsys, tmp_path
+):
+    """A CALIB.json whose recording did not determine flange←tool against camera←base (a
+    constant-orientation run) is used, with a warning naming the parameters and the fix,
+    and the JSON lists them."""
+    d, _ = setup
+    doc = json.loads((d / "same.json").read_text())
+    names = [f"{t}.t{c}" for t in ("camera_from_base", "flange_from_tool") for c in "xyz"]
+    doc["identifiability"] = {"undetermined": names}
+    (tmp_path / "weak.json").write_text(json.dumps(doc))
+    out = tmp_path / "iso.json"
+    code, _, err = run_cli(
+        capsys, "iso9283", d / "iso.h5", "--calibration", tmp_path / "weak.json", "--json", out
+    )
+    warning = [line for line in err.splitlines() if "does not determine" in line]
+    assert len(warning) == 1 and "flange_from_tool.tx" in warning[0]
+    assert "reorientations about two axes" in warning[0]
+    assert json.loads(out.read_text())["calibration_undetermined"] == names
+    # the calibration of this setup without the defect: no such warning
+    code, _, err = run_cli(
+        capsys, "iso9283", d / "iso.h5", "--calibration", d / "same.json",
+        "--json", tmp_path / "iso2.json",
+    )  # fmt: skip
+    assert "does not determine" not in err
+    assert json.loads((tmp_path / "iso2.json").read_text())["calibration_undetermined"] == []

@@ -108,6 +108,7 @@ def test_identifiability_names_an_exact_null_direction_and_covariance_excludes_i
     free, rep = identifiability(h, names, np.ones(4, bool), droppable)
     assert list(free) == [True, True, True, False]
     assert rep["dropped"] == [{"parameter": "d", "confounded_with": ["b", "a"]}]
+    assert rep["undetermined"] == []
     cov, rank = covariance(h, free, 2.0)
     assert rank == 3 and np.all(cov[3] == 0)
     np.testing.assert_allclose(cov[:3, :3], 2.0 * np.linalg.inv(h[:3, :3]), rtol=1e-8)
@@ -142,3 +143,16 @@ def test_bundle_normal_equations_are_those_of_the_pure_residuals():
     np.testing.assert_allclose(
         np.asarray(b) / scale, np.asarray(j.T @ r) / scale, atol=1e-9 * np.sqrt(float(c))
     )
+
+
+def test_a_null_direction_of_parameters_that_cannot_be_fixed_is_named_undetermined():
+    """Two translations that enter the data only through their sum (camera←base and
+    flange←tool of a constant-orientation run) are reported as undetermined."""
+    rng = np.random.default_rng(4)
+    j = rng.normal(size=(40, 3))
+    j = np.column_stack([j[:, 0], j[:, 0], j[:, 1], j[:, 2]])  # columns 0 and 1 confounded
+    h = j.T @ j
+    names = ["camera_from_base.tx", "flange_from_tool.tx", "b", "c"]
+    free, rep = identifiability(h, names, np.ones(4, bool), np.zeros(4, bool))
+    assert list(free) == [True] * 4 and rep["dropped"] == []
+    assert rep["undetermined"] == ["camera_from_base.tx", "flange_from_tool.tx"]
