@@ -144,19 +144,25 @@ def gravity_torque(
 ) -> Float[Array, " joints"]:
     """Joint torques [N·m] that gravity (−z of the base) exerts, from the link-mass model.
 
-    τ = −∂V/∂q with V the potential energy of the lumped link masses and the payload.
+    τ = −∂V/∂q with V the potential energy of the lumped link masses (each at the middle
+    of its link, i.e. half at either joint origin) and the payload (at the flange), in
+    closed form: joint i turns what lies beyond it about its axis zᵢ through oᵢ, so
+    ``∂V/∂qᵢ = g·[zᵢ × (Mᵢ − Wᵢ·oᵢ)]_z`` with Wᵢ the mass and Mᵢ the mass moment beyond it.
     """
-
-    last_from_flange = jaxlie.SE3(robot.last_from_flange).as_matrix()
-
-    def potential(q):
-        frames = joint_frames(robot.dh, q)
-        origins = frames[:, :3, 3]
-        com = 0.5 * (origins[:-1] + origins[1:])
-        flange_z = frames[-1, 2] @ last_from_flange[:, 3].astype(q.dtype)
-        return g * (jnp.sum(robot.link_mass * com[:, 2]) + robot.payload_mass * flange_z)
-
-    return -jax.grad(potential)(q)
+    frames = joint_frames(robot.dh, q)
+    origin = frames[:, :3, 3]  # (joints + 1, 3), base first
+    axis = frames[:-1, :3, 2]  # joint i turns about z of frame i
+    flange = frames[-1, :3] @ jaxlie.SE3(robot.last_from_flange).as_matrix()[:, 3].astype(q.dtype)
+    m = jnp.asarray(robot.link_mass, q.dtype)
+    zero = jnp.zeros(1, q.dtype)
+    w = 0.5 * (jnp.concatenate([zero, m]) + jnp.concatenate([m, zero]))  # per origin
+    beyond_w = jnp.cumsum(w[::-1])[::-1][1:] + robot.payload_mass
+    beyond_m = (
+        jnp.cumsum((w[:, None] * origin)[::-1], axis=0)[::-1][1:]
+        + robot.payload_mass * flange[None]
+    )
+    r = beyond_m - beyond_w[:, None] * origin[:-1]
+    return -g * (axis[:, 0] * r[:, 1] - axis[:, 1] * r[:, 0])
 
 
 def inverse_kinematics(
