@@ -246,16 +246,18 @@ def fit(
     noise_info: dict[str, Any] = {"kind": "user_weights"}
     w = w_user
     if weights is None:
-        d, theta, sq = residual_stats(bundle)
+        _, theta, sq = residual_stats(bundle)
         var, noise_info = _noise_model(sq, theta, used, data.has_normals)
+        del theta, sq  # whole-recording arrays: not held through the next solve
         w = np.where(used, 1.0 / var, 0.0)
+        del var
         bundle = dataclasses.replace(bundle, chunks=cp.with_weights(bundle.chunks, w))
         bundle, sol = _solve_pass(st, bundle, free_mask, solver, max_iter, say, "noise-weighted")
         sols.append(sol)
     w_noise = w
     if robust is not None:
         for it in range(5):
-            d, theta, sq = residual_stats(bundle)
+            _, _, sq = residual_stats(bundle)
             dof = max(1, 3 * int(used.sum()) - int(free_mask.sum()))
             s2 = float(np.sum(w * sq) / dof)
             u = np.sqrt(w_noise * sq / 3.0 / max(s2, 1e-300))
@@ -266,6 +268,7 @@ def fit(
                 else 1 / (1 + (u / k) ** 2)
             )
             w = np.where(used, w_noise * rho, 0.0)
+            del sq, u, rho
             bundle = dataclasses.replace(bundle, chunks=cp.with_weights(bundle.chunks, w))
             bundle, sol = _solve_pass(
                 st, bundle, free_mask, solver, max_iter, say, f"robust ({robust}) pass {it + 1}"
@@ -276,6 +279,13 @@ def fit(
 
     say("covariance and residual statistics")
     d, theta, sq = residual_stats(bundle)
+    del theta
+    frames_rec = data.n_recording_frames
+    full_res = np.full((frames_rec, data.n_leds, 3), np.nan)
+    full_res[data.frame] = d
+    del d
+    unused_frame, unused_led = np.nonzero(~used)
+    full_res[data.frame[unused_frame], unused_led] = np.nan
     h, _, chi2 = (np.asarray(x) for x in _normal_at_zero(bundle, len(st.names_theta)))
     chi2 = float(chi2)
     n_res = 3 * int(used.sum()) + (6 * int(bundle.probe.probed.shape[0]) if bundle.probe else 0)
@@ -295,7 +305,6 @@ def fit(
     logw = float(np.sum(np.log(w[used]))) * 3.0
     loglik = -0.5 * n_led * (math.log(2 * math.pi * chi2 / n_led) + 1.0) + 0.5 * logw
 
-    frames_rec = data.n_recording_frames
     per_frame = np.full(frames_rec, np.nan)
     cnt = used.sum(1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -303,8 +312,6 @@ def fit(
         per_led = np.sqrt(np.sum(sq * used, 0) / used.sum(0))
         u_frame = np.sqrt(np.sum(w_noise * sq * used, 1) / np.maximum(3 * cnt, 1) / s2)
     outliers = data.frame[(cnt > 0) & (u_frame > _OUTLIER_U)]
-    full_res = np.full((frames_rec, data.n_leds, 3), np.nan)
-    full_res[data.frame] = np.where(used[..., None], d, np.nan)
     # weights in the recording's LED columns, so that they can be passed back as `weights=`
     rec_col = {int(i): k for k, i in enumerate(recording.led_ids)}
     full_w = np.zeros((frames_rec, recording.n_leds))
@@ -483,6 +490,8 @@ def _setup(recording, estimate, init, weights, chunk, say) -> _Setup:
         and all(float(np.max(np.abs(getattr(effects0, n)))) == 0.0 for n in cp.LED_EFFECTS),
     )
     chunks = cp.chunked_frames(data, np.sqrt(w_user), cp.chunk_size(data.n_frames, chunk))
+    # the observations live on in `chunks`; the frame-major copy is not needed again
+    data = dataclasses.replace(data, measured=np.zeros((0, data.n_leds, 3)))
     if not kinematic:
         fl = cp.fixed_flange_poses(data.robot, effects0, problem.log_time, problem.joints, chunks)
         chunks = dataclasses.replace(chunks, base_from_flange=fl)
