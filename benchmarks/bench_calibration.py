@@ -64,7 +64,6 @@ from scipy.optimize import least_squares
 from robtraj import read_recording
 from robtraj.estimate import calibration as C
 from robtraj.estimate import _calib_problem as cp
-from robtraj.estimate import _calib_problem as cp
 rec = read_recording(sys.argv[1])
 res = C.fit(rec)  # for the noise weights and the optimum to compare with
 t0 = time.perf_counter()

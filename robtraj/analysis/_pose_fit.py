@@ -443,8 +443,8 @@ def fit_poses(
     theta = sol.theta
     h = np.asarray(normal_at(pose_normal, jnp.asarray(theta), data)[0])
     n_res = 6 * series.n
-    _, rank = covariance(h, free)
-    cov, _ = covariance(h, free, sol.cost / max(1, n_res - rank))
+    cov_unit, rank = covariance(h, free)
+    cov = cov_unit * (sol.cost / max(1, n_res - rank))
     sigma = np.where(free, np.sqrt(np.clip(np.diag(cov), 0.0, None)), np.nan)
     pred = np.asarray(
         _predict_jit(jnp.asarray(theta), *(data.z0, data.x0, data.joints, data.drift, data.torque))

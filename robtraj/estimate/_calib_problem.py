@@ -282,27 +282,6 @@ def normal_equations(g: Array, p: Array, problem: BundleProblem, chunks: Frames)
     return acc
 
 
-def _predict_any(g, p, problem, frames):
-    if not problem.rigid_leds:
-        return predict(g, p, problem, frames)
-    tool, _ = tool_poses(g, problem, frames)
-    rot = jax.vmap(lambda t: t.rotation().as_matrix())(tool)
-    return jnp.einsum("cij,mj->cmi", rot, p) + tool.translation()[:, None, :]
-
-
-@eqx.filter_jit
-def cost(g: Array, p: Array, problem: BundleProblem, chunks: Frames) -> Array:
-    """Weighted residual sum of squares over all chunks."""
-
-    def body(acc, frames):
-        pred = _predict_any(g, p, problem, frames)
-        r = frames.sqrt_weight[..., None] * (frames.measured - pred)
-        return acc + jnp.sum(r * r), None
-
-    acc, _ = jax.lax.scan(body, jnp.zeros(()), chunks)
-    return acc
-
-
 @eqx.filter_jit
 def evaluate(g: Array, p: Array, problem: BundleProblem, chunks: Frames):
     """Per observation: unweighted residual `(frames, leds, 3)` [m] and emission angle [rad]."""

@@ -14,9 +14,10 @@ normal matrix ``Hs = VΛVᵀ`` (eigenvalues below `RCOND`·λ_max dropped), the 
 
 with the declared Jacobian ``[Λ^{½} Vᵀ; 0]`` has ``|R|² = cost``, ``JᵀR = −bs`` (the exact
 gradient) and ``JᵀJ = Hs`` (the Gauss–Newton Hessian): any Optimistix least-squares
-solver (default: `optx.LevenbergMarquardt`, damped Newton descent in a classical trust
-region) then runs exactly its algorithm on the full problem, one pass over the
-observations per step, with linear algebra of the parameter count only.
+solver (default: `optx.LevenbergMarquardt`'s damped Newton descent in `TrustRegion`, a
+classical trust region aware of the cost's rounding) then runs exactly its algorithm on
+the full problem, one pass over the observations per step, with linear algebra of the
+parameter count only.
 
 Column scaling and the free-parameter selection belong to the problem: the solver's
 variable is ``z = D·(θ − θ₀)`` on the free entries with D = sqrt(diag H / `DIAGONAL`) at
@@ -200,6 +201,7 @@ def solve(
     n_residuals: int | None = None,
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 50,
+    start: tuple | None = None,
 ) -> Solution:
     """Minimise ``cost(θ)`` over the `free` entries of θ, starting at `theta0`.
 
@@ -209,6 +211,7 @@ def solve(
     - `n_residuals`: number of scalar residuals behind `normal`; fewer than free
       parameters is a `UserError`.
     - `solver`: any Optimistix least-squares solver (default `default_solver()`).
+    - `start`: ``normal(theta0, data)`` if the caller has it already (saves a pass).
 
     Optimistix's own ``init``/``step``/``terminate`` run the algorithm; between steps the
     normal equations are evaluated at the point the solver asks for (compiled once, apart
@@ -226,7 +229,7 @@ def solve(
         )
     if not np.all(np.isfinite(np.asarray(theta0))):
         raise UserError("the start values are not finite")
-    h, b, cost = normal_at(normal, theta0, data)
+    h, b, cost = normal_at(normal, theta0, data) if start is None else start
     if not (np.isfinite(float(cost)) and np.all(np.isfinite(np.asarray(h)))):
         raise UserError("the cost at the start is not finite: non-finite observations or weights?")
     solver = solver or default_solver()

@@ -159,7 +159,7 @@ def _noise_model(sq: np.ndarray, theta: np.ndarray, used: np.ndarray, by_angle: 
 class _Setup:
     """A recording prepared for the engine: the observations (`data`), the problem at its
     start (`bundle`), parameter names and which ones may be dropped, the normal matrix
-    at the start (`h0`)."""
+    at the start (`h0`; `normal0` the engine's ``(H, b, cost)`` there)."""
 
     data: CalibrationData
     bundle: BundleData
@@ -174,10 +174,14 @@ class _Setup:
     has_column: np.ndarray  # θ entries that are parameters (not padding of the basis)
     h0: np.ndarray
     n_residuals: int
+    normal0: tuple
 
 
-def _solve_pass(st: _Setup, bundle: BundleData, free_mask, solver, max_iter, say, label):
-    """One engine solve from `bundle`'s current values; returns the re-centred bundle."""
+def _solve_pass(
+    st: _Setup, bundle: BundleData, free_mask, solver, max_iter, say, label, start=None
+):
+    """One engine solve from `bundle`'s current values (`start`: the normal equations
+    there, if known); returns the re-centred bundle."""
     say(f"{label}: {type(solver).__name__ if solver else 'Levenberg–Marquardt'}")
     sol = solve(
         bundle_normal,
@@ -187,6 +191,7 @@ def _solve_pass(st: _Setup, bundle: BundleData, free_mask, solver, max_iter, say
         n_residuals=st.n_residuals,
         solver=solver,
         max_steps=max_iter,
+        start=start,
     )
     problem = cp.recentre(bundle.problem, sol.theta, np.asarray(bundle.basis))
     return dataclasses.replace(bundle, problem=problem), sol
@@ -234,7 +239,9 @@ def fit(
     free_mask, ident = identifiability(st.h0, st.phi_names, st.has_column, st.droppable)
     if ident["dropped"]:
         say("not identifiable, fixed: " + ", ".join(d["parameter"] for d in ident["dropped"]))
-    bundle, sol = _solve_pass(st, st.bundle, free_mask, solver, max_iter, say, "unweighted fit")
+    bundle, sol = _solve_pass(
+        st, st.bundle, free_mask, solver, max_iter, say, "unweighted fit", st.normal0
+    )
     sols = [sol]
 
     def residual_stats(b: BundleData):
@@ -289,10 +296,9 @@ def fit(
     h, _, chi2 = (np.asarray(x) for x in _normal_at_zero(bundle, len(st.names_theta)))
     chi2 = float(chi2)
     n_res = 3 * int(used.sum()) + (6 * int(bundle.probe.probed.shape[0]) if bundle.probe else 0)
-    _, rank = covariance(h, free_mask)
-    dof = max(1, n_res - rank)
-    s2 = chi2 / dof
-    cov_theta, _ = covariance(h, free_mask, s2)
+    cov_unit, rank = covariance(h, free_mask)
+    s2 = chi2 / max(1, n_res - rank)
+    cov_theta = s2 * cov_unit
     basis = np.asarray(bundle.basis)
     t = np.zeros((q + 3 * data.n_leds, q + basis.shape[1]))
     t[:q, :q] = np.eye(q)
@@ -399,7 +405,7 @@ def score_effects(
     w = current.weights if weights is None else weights
     st = _setup(recording, EFFECT_NAMES, current, w, chunk, lambda _m: None)
     H = st.h0
-    b = np.asarray(_normal_at_zero(st.bundle, len(st.names_theta))[1])
+    b = np.asarray(st.normal0[1])
     fixed_now = set(current.identifiability.get("fixed_parameters", []))
     names = st.names_theta
     mine = set(current.estimated)
@@ -501,7 +507,8 @@ def _setup(recording, estimate, init, weights, chunk, say) -> _Setup:
     names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
     has_column = np.concatenate([np.ones(q, bool), np.any(basis != 0, axis=0)])
     n_res = 3 * int(np.sum(w_user > 0)) + (0 if probe is None else 6 * probe.probed.shape[0])
-    h0 = np.asarray(_normal_at_zero(bundle, len(names_theta))[0])
+    normal0 = _normal_at_zero(bundle, len(names_theta))
+    h0 = np.asarray(normal0[0])
     if not np.all(np.isfinite(h0)):
         raise UserError("the observations give non-finite normal equations at the start")
     return _Setup(
@@ -518,6 +525,7 @@ def _setup(recording, estimate, init, weights, chunk, say) -> _Setup:
         has_column=has_column,
         n_residuals=n_res,
         h0=h0,
+        normal0=normal0,
     )
 
 

@@ -8,6 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ._quaternion import quat_to_matrix
+
 
 class RigidFit(eqx.Module):
     """Result of `weighted_procrustes`, one row per frame.
@@ -214,17 +216,14 @@ def _fit_block(model: Array, measured: Array, weights: Array) -> RigidFit:
 
     q = _top_eigenvector(horn, lam)
     sign = jnp.where(q[0] < 0, -1.0, 1.0)  # convention w >= 0
-    q = [sign * qi for qi in q]
-    r = _rotation_rows(q)
-    t = [y_bar[:, a] - sum(r[a][b] * p_bar[:, b] for b in range(3)) for a in range(3)]
-    r = jnp.stack([jnp.stack(row, axis=-1) for row in r], axis=-2)  # (frames, 3, 3)
-    pos = jnp.stack(t, axis=-1)
+    quat = jnp.stack([sign * qi for qi in q], axis=-1)
+    r = quat_to_matrix(quat)  # (frames, 3, 3)
+    pos = y_bar - jnp.sum(r * p_bar[:, None, :], axis=-1)
     res = y - rotated_model(r) - pos[:, None]
     ms = jnp.sum(wn * jnp.sum(jnp.where(used[..., None], res, 0.0) ** 2, axis=-1), axis=1)
     # double-where: sqrt has an infinite derivative at a perfect fit.
     rms = jnp.where(ms > 0, jnp.sqrt(jnp.where(ms > 0, ms, 1.0)), 0.0)
     nan = jnp.array(jnp.nan, dtype)
-    quat = jnp.stack(q, axis=-1)
     return RigidFit(
         jnp.where(valid[:, None], quat, nan),
         jnp.where(valid[:, None], pos, nan),
@@ -432,14 +431,4 @@ def _horn_matrix(s) -> list[list[Array]]:
         [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
         [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
         [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
-    ]
-
-
-def _rotation_rows(q) -> list[list[Array]]:
-    """Rotation matrix entries R[a][b] of unit quaternions q = [w, x, y, z] (arrays)."""
-    w, x, y, z = q
-    return [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ]
