@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 import robtraj  # noqa: F401
-from robtraj.analysis import discrepancy as dm
 from robtraj.analysis.discrepancy import discover
+from robtraj.estimate import observation_noise
 from robtraj.estimate.calibration import fit, score_effects
 from robtraj.model import EFFECT_NAMES
 from robtraj.sim import simulate
@@ -49,10 +49,8 @@ def main() -> None:
             f"gap {res.gap_before_m * 1e6:.1f} → {res.gap_after_m * 1e6:.1f} µm"
         )
     # first round both ways on the last recording
-    angles = dm._observation_angles(rec)
-    centre, sigma = dm.static_noise(rec, angles)
-    sig = np.interp(np.nan_to_num(angles, nan=float(np.median(centre))), centre, sigma)
-    w = np.where(rec.visible, 1.0 / sig**2, 0.0)
+    _, var = observation_noise(rec)
+    w = np.where(rec.visible & np.isfinite(var), 1.0 / var, 0.0)
     nominal = fit(rec, weights=w)
     t0 = time.perf_counter()
     scores = score_effects(rec, nominal, EFFECT_NAMES, weights=w)

@@ -113,6 +113,22 @@ def _covariance(doc: dict) -> dict | None:
     return {"parameters": names, "matrix": m.tolist()}
 
 
+def _covariance_robust(doc: dict, cov: dict | None) -> dict | None:
+    rob = doc.get("covariance_robust")
+    if rob is None:
+        return None
+    n = 0 if cov is None else len(cov["parameters"])
+    if not isinstance(rob, dict) or "matrix" not in rob or cov is None:
+        raise UserError(
+            "'covariance_robust' must be null or an object with a matrix beside a covariance"
+        )
+    m = _numbers(rob["matrix"], (n, n), "covariance_robust.matrix")
+    clusters = rob.get("clusters", 0)
+    if not isinstance(clusters, int) or isinstance(clusters, bool) or clusters < 0:
+        raise UserError("covariance_robust.clusters must be a whole number ≥ 0")
+    return {"matrix": m.tolist(), "clusters": clusters}
+
+
 def parse_calibration(doc: Any, name: str = "CALIB.json"):
     """A `CalibrationResult` from the parsed JSON `doc`; `UserError` (prefixed `name`) on any
     schema defect."""
@@ -135,6 +151,10 @@ def parse_calibration(doc: Any, name: str = "CALIB.json"):
         clean.pop("covariance", None)
         if cov is not None:
             clean["covariance"] = cov
+        clean.pop("covariance_robust", None)
+        robust = _covariance_robust(doc, cov)
+        if robust is not None:
+            clean["covariance_robust"] = robust
         ident = doc.get("identifiability", {})
         if not isinstance(ident, dict):
             raise UserError("'identifiability' must be an object")

@@ -484,6 +484,13 @@ def _check_shape(name: str, key: str, arr: np.ndarray, shape: tuple) -> None:
         raise RecordingError(f"{name}: {key} has shape {arr.shape}, expected {want}")
 
 
+def _check_integer(name: str, key: str, arr: np.ndarray) -> None:
+    if not np.issubdtype(np.asarray(arr).dtype, np.integer):
+        raise RecordingError(
+            f"{name}: {key} must hold integer LED ids, not {np.asarray(arr).dtype}"
+        )
+
+
 def _check_increasing(name: str, key: str, t: np.ndarray) -> None:
     t = np.asarray(t, np.float64)
     if not np.all(np.isfinite(t)):
@@ -515,6 +522,7 @@ def _validate(rec: Recording, name: str) -> None:
     _check_shape(name, "/tracker/time", rec.time, (None,))
     m = np.shape(rec.led_ids)[0] if np.ndim(rec.led_ids) == 1 else None
     _check_shape(name, "/tracker/led_ids", rec.led_ids, (None,))
+    _check_integer(name, "/tracker/led_ids", rec.led_ids)
     _check_shape(name, "/tracker/frame_index", rec.frame_index, (n,))
     _check_shape(name, "/tracker/positions", rec.positions, (n, m, 3))
     if n:
@@ -540,6 +548,7 @@ def _validate(rec: Recording, name: str) -> None:
             _check_shape(name, "/program/segment", rec.program.segment, (n,))
     if rec.tool is not None:
         mt = np.shape(rec.tool.led_ids)[0]
+        _check_integer(name, "/tool/led_ids", rec.tool.led_ids)
         _check_shape(name, "/tool/constellation", rec.tool.constellation, (mt, 3))
         if rec.tool.normals is not None:
             _check_shape(name, "/tool/normals", rec.tool.normals, (mt, 3))

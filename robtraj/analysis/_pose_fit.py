@@ -15,9 +15,10 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from scipy.cluster.vq import kmeans2
 
 from .._errors import UserError
-from ..estimate import covariance, identifiability, normal_at, solve
+from ..estimate import covariance, identifiability, normal_at, robust_covariance, solve
 from ..model import Effects, camera_from_base_at, forward_kinematics, ur10
 from ._pose_series import PoseSeries
 from ._quat import rotation_angle
@@ -31,6 +32,9 @@ _EFFECT_ORDER = (
     "tracker_scale",
 )
 _TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
+#: regions of joint space the robust σ leaves out one at a time: the model error of a
+#: UR10 varies over the workspace, so a region must span a good part of it
+REGIONS = 10
 #: which parameter of a null direction to fix first (the UR10's known degeneracies:
 #: joint-1 zero ≡ tracker yaw, d1 ≡ tracker z, joint-6 zero ≡ probe roll about the
 #: flange axis, d6/a6 ≡ probe offset, d2 + d3 + d4 along parallel axes 2–4 only as a
@@ -185,7 +189,10 @@ class PoseFit:
     camera←base and flange←probe at θ = 0 (``wxyz_xyz``); `free`: estimated parameters;
     `fixed_unidentifiable`: effect parameters fixed because they are not identifiable
     (with the direction they are confounded with); `sigma`: 1σ of the estimated
-    parameters (`np.nan` elsewhere), from ``s²(JᵀWJ)⁻¹`` with ``s²=χ²/(n−p)``.
+    parameters (`np.nan` elsewhere), the larger of `sigma_model` (``s²(JᵀWJ)⁻¹`` with
+    ``s²=χ²/(n−p)``) and the delete-one-region jackknife over `REGIONS` regions of joint
+    space (`robtraj.estimate.robust_covariance`), which does not shrink when the residual
+    is model error shared by neighbouring poses.
     """
 
     series: str
@@ -203,6 +210,7 @@ class PoseFit:
     angle_error: np.ndarray
     iterations: int
     converged: bool
+    sigma_model: np.ndarray | None = None
 
     @property
     def n_free(self) -> int:
@@ -446,6 +454,10 @@ def fit_poses(
     cov_unit, rank = covariance(h, free)
     cov = cov_unit * (sol.cost / max(1, n_res - rank))
     sigma = np.where(free, np.sqrt(np.clip(np.diag(cov), 0.0, None)), np.nan)
+    sigma_robust = np.full_like(sigma, np.nan)
+    if fixed is None:  # a calibration, not a cross-series prediction
+        cov_r = _region_jackknife(theta, data, free, series)
+        sigma_robust = np.where(free, np.sqrt(np.clip(np.diag(cov_r), 0.0, None)), np.nan)
     pred = np.asarray(
         _predict_jit(jnp.asarray(theta), *(data.z0, data.x0, data.joints, data.drift, data.torque))
     )
@@ -457,7 +469,8 @@ def fit_poses(
         z0=np.asarray(z0),
         x0=np.asarray(x0),
         free=free,
-        sigma=sigma,
+        sigma=np.fmax(sigma, sigma_robust),
+        sigma_model=sigma,
         chi2=sol.cost,
         n_residuals=n_res,
         block_sigma=tuple(float(b) for b in block_sigma),
@@ -467,6 +480,35 @@ def fit_poses(
         iterations=sol.steps,
         converged=sol.converged,
     )
+
+
+@jax.jit
+def _region_terms(theta, d: PoseData, onehot):
+    """Per region (`onehot` `(N, G)` assigns the poses): the normal matrix ``J_gᵀW J_g``
+    `(G, P, P)` and score ``J_gᵀW r_g`` `(G, P)` of the weighted 6-D pose residuals."""
+
+    def rf(t):
+        return d.sqrt_w * _raw_residual(t, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
+
+    r = rf(theta)
+    j = jax.jacfwd(rf)(theta)  # (N, 6, P)
+    return (
+        jnp.einsum("ng,nkp,nkq->gpq", onehot, j, j),
+        -jnp.einsum("ng,nkp,nk->gp", onehot, j, r),
+    )
+
+
+def _region_jackknife(theta, data: PoseData, free, series: PoseSeries) -> np.ndarray:
+    """`robust_covariance` with the poses grouped into `REGIONS` regions of joint space
+    (k-means on the first five joints, seeded): poses near each other share the model's
+    error, poses far apart much less."""
+    g = min(REGIONS, series.n // 2)
+    if g < 2:
+        return np.full((theta.size, theta.size), np.nan)
+    _, label = kmeans2(np.asarray(series.joints)[:, :5], g, seed=0, minit="++")
+    onehot = np.eye(g)[label][:, np.bincount(label, minlength=g) > 0]
+    hg, sg = (np.asarray(a) for a in _region_terms(jnp.asarray(theta), data, jnp.asarray(onehot)))
+    return robust_covariance(hg.sum(0), free, hg, sg)
 
 
 def cross_predict(

@@ -24,6 +24,7 @@ import numpy as np
 from scipy import stats
 
 from .._errors import UserError
+from ..estimate import observation_angles, observation_noise
 from ..model import EFFECT_NAMES
 from ..recording import Recording
 
@@ -31,13 +32,16 @@ from ..recording import Recording
 ALPHA = 0.01
 #: significance of residual structure against one variable, before Bonferroni
 ALPHA_STRUCTURE = 0.001
+#: contiguous time blocks of the held-out check; odd and even blocks are the two folds
+HELDOUT_BLOCKS = 8
 
 
 @dataclasses.dataclass(frozen=True)
 class Step:
     """One named effect: fitted `parameters` {name: (value, σ)} (SI units), the gap after
-    adding it [m], and its `score` (likelihood ratio of the refit, dof, p-value, ΔBIC);
-    `candidates`: the score tests of every candidate of the round."""
+    adding it [m], and its `score` (likelihood ratio of the refit, dof, p-value, ΔBIC,
+    and the held-out gaps before and after it [m]); `candidates`: the score tests of
+    every candidate of the round."""
 
     effect: str
     parameters: dict[str, tuple[float, float]]
@@ -51,7 +55,10 @@ class DiscrepancyResult:
     """What the workflow found. `structure` lists, per variable, the residual-structure
     test after the last step (`statistic`, `dof`, `p_value`, `significant`).
     `gap_floor_m` is the gap a complete model reaches by chance with this noise and data
-    (two standard errors of the gap's estimate): a final gap below it is noise."""
+    (two standard errors of the gap's estimate): a final gap below it is noise.
+    `rejected` lists candidates that passed the likelihood-ratio test but did not improve
+    the held-out blocks by more than the floor (with their held-out gaps); `stopped` says
+    why the search ended; `noise` is the recording's `NoiseModel`."""
 
     gap_before_m: float
     steps: list[Step]
@@ -65,6 +72,9 @@ class DiscrepancyResult:
     gaps: list[float]
     residual_before: dict[str, tuple]
     residual_after: dict[str, tuple]
+    noise: Any = None
+    rejected: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    stopped: str = ""
 
     @property
     def named(self) -> list[str]:
@@ -102,16 +112,21 @@ class DiscrepancyResult:
             "unexplained": self.unexplained,
             "unexplained_where": self.unexplained_where,
             "noise_sigma_m": self.noise_sigma_m,
+            "noise_model": None if self.noise is None else self.noise.to_dict(),
+            "rejected": self.rejected,
+            "stopped": self.stopped,
             "structure_after": self.structure,
             "localisation_before": self.localisation,
         }
 
     def figures(self, out_dir: str | Path) -> list[Path]:
-        """PNGs: the gap step by step, and the residual structure before and after."""
-        from ..report import gap_figure, structure_figure
+        """PNGs: the gap step by step, the residual structure before and after, and the
+        noise model."""
+        from ..report import gap_figure, noise_figure, structure_figure
 
         out = Path(out_dir)
-        return [
+        extra = [] if self.noise is None else [noise_figure(out / "noise_model.png", self.noise)]
+        return extra + [
             gap_figure(
                 out / "discrepancy_gap.png",
                 ["nominal", *self.named],
@@ -123,70 +138,6 @@ class DiscrepancyResult:
                 out / "discrepancy_structure.png", self.residual_before, self.residual_after
             ),
         ]
-
-
-# ----------------------------------------------------------------------------- noise
-
-
-def static_noise(rec: Recording, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-axis noise σ [m] as a function of emission angle, from the static segments.
-
-    Within a static segment the tool does not move, so the scatter of each LED about its
-    segment mean is noise alone. Returns (bin centres [rad], σ per bin); the bins are
-    angle quantiles of the static observations.
-    """
-    centre, sigma, _ = _static_noise(rec, angles)
-    return centre, sigma
-
-
-def _static_noise(rec: Recording, angles: np.ndarray):
-    """`static_noise` plus the relative standard error of the per-bin variances."""
-    from ..estimate import static_segments
-
-    pos = np.asarray(rec.positions)
-    segs = static_segments(rec.time, pos)
-    dev2, ang = [], []
-    for a, b in segs:
-        p = pos[a:b]
-        seen = np.isfinite(p[..., 0])
-        n = seen.sum(0)
-        ok = n >= 3
-        mean = np.where(seen[..., None], p, 0.0).sum(0) / np.maximum(n, 1)[:, None]
-        d2 = np.where(seen[..., None], (p - mean) ** 2, 0.0).sum(-1)  # (f, m), 3 axes
-        corr = (n / np.maximum(n - 1, 1))[None, :]  # unbiased
-        use = seen & ok[None, :] & np.isfinite(angles[a:b])
-        dev2.append((d2 * corr / 3.0)[use])
-        ang.append(angles[a:b][use])
-    if not dev2 or sum(x.size for x in dev2) < 30:
-        raise UserError(
-            "no static segment with the tool at rest: the noise level cannot be estimated "
-            "independently of the model"
-        )
-    dev2, ang = np.concatenate(dev2), np.concatenate(ang)
-    edges = np.quantile(ang, np.linspace(0, 1, 9))
-    idx = np.clip(np.searchsorted(edges, ang, side="right") - 1, 0, 7)
-    centre = np.array([np.median(ang[idx == k]) for k in range(8)])
-    var = np.array([np.mean(dev2[idx == k]) for k in range(8)])
-    rel_se = np.array([np.std(dev2[idx == k]) / np.sqrt((idx == k).sum()) for k in range(8)])
-    return centre, np.sqrt(var), rel_se / var
-
-
-def _observation_angles(rec: Recording) -> np.ndarray:
-    """Emission angle [rad] of every LED observation `(N, M)` from per-frame poses."""
-    from ..estimate import estimate_poses, led_emission_angles
-
-    if rec.tool is None or rec.tool.normals is None:
-        return np.zeros(rec.positions.shape[:2])
-    est = estimate_poses(rec, weighting="uniform", register=False, leds=rec.led_ids)
-    normals = np.full((rec.n_leds, 3), np.nan)
-    tool_ids = list(np.asarray(rec.tool.led_ids))
-    const = np.zeros((rec.n_leds, 3))
-    for k, i in enumerate(rec.led_ids):
-        if i in tool_ids:
-            normals[k] = rec.tool.normals[tool_ids.index(i)]
-            const[k] = rec.tool.constellation[tool_ids.index(i)]
-    ang = led_emission_angles(est.position, est.quaternion_wxyz, const, np.nan_to_num(normals))
-    return np.where(rec.visible & est.valid[:, None], ang, np.nan)
 
 
 # ----------------------------------------------------------------------------- structure
@@ -273,22 +224,60 @@ def _binned_rms(residual, variables, name, bins=20):
 # ----------------------------------------------------------------------------- workflow
 
 
-def _gap(res, var3: np.ndarray) -> float:
+def _gap(res, var3: np.ndarray, share: float = 1.0) -> float:
+    """``sqrt(max(0, mean|r|² − share · mean var3))`` [m] over the observations with a
+    residual; `share` = 1 − p/n, the noise fraction a fit of p parameters leaves."""
     r = res.residuals
     use = np.isfinite(r[..., 0]) & np.isfinite(var3)
-    return float(np.sqrt(max(0.0, np.mean(np.sum(r[use] ** 2, -1)) - np.mean(var3[use]))))
+    return float(np.sqrt(max(0.0, np.mean(np.sum(r[use] ** 2, -1)) - share * np.mean(var3[use]))))
 
 
 def _gap_floor(res, var3: np.ndarray, rel_se_var: float) -> float:
     """The gap a complete model reaches by chance [m]: two standard errors of
-    ``mean|r|² − mean 3σ̂²`` (of the residual's mean square, and of the static-segment
-    noise estimate with relative standard error `rel_se_var`), under the root."""
+    ``mean|r|² − mean 3σ̂²`` (of the residual's mean square, and of the noise model's
+    mean variance with relative standard error `rel_se_var`), under the root."""
     r = res.residuals
     use = np.isfinite(r[..., 0]) & np.isfinite(var3)
     r2 = np.sum(r[use] ** 2, -1)
     se_r = np.std(r2) / np.sqrt(r2.size)
     se_v = np.mean(var3[use]) * rel_se_var
     return float(np.sqrt(2.0 * np.hypot(se_r, se_v)))
+
+
+def _share(res) -> float:
+    return 1.0 - res.n_params / max(res.n_residuals, 1)
+
+
+def _aligned(rec: Recording, res, values: np.ndarray) -> np.ndarray:
+    """`values` `(N, M)` in the recording's LED columns, reordered to `res.led_ids`."""
+    col = {int(i): k for k, i in enumerate(np.asarray(rec.led_ids))}
+    return values[:, [col[int(i)] for i in res.led_ids]]
+
+
+class _HeldOut:
+    """Two-fold cross-validation over contiguous time blocks (odd against even): the
+    gap of a model on the blocks it was not fitted to [m]."""
+
+    def __init__(self, rec: Recording, weights: np.ndarray, var: np.ndarray):
+        from ..estimate.calibration import fit, predict_residuals
+
+        self._fit, self._predict = fit, predict_residuals
+        n = rec.n_frames
+        self.fold = (np.arange(n) * HELDOUT_BLOCKS // n) % 2
+        self.rec, self.weights, self.var3 = rec, weights, 3.0 * var
+
+    def gap(self, estimate: tuple[str, ...], init) -> float:
+        r2, v3 = [], []
+        for f in (0, 1):
+            train = np.where((self.fold != f)[:, None], self.weights, 0.0)
+            res = self._fit(self.rec, estimate=estimate, weights=train, init=init)
+            d = self._predict(self.rec, res)[self.fold == f]
+            v = _aligned(self.rec, res, self.var3)[self.fold == f]
+            use = np.isfinite(d[..., 0]) & np.isfinite(v)
+            r2.append(np.sum(d[use] ** 2, -1))
+            v3.append(v[use])
+        r2, v3 = np.concatenate(r2), np.concatenate(v3)
+        return float(np.sqrt(max(0.0, np.mean(r2) - np.mean(v3))))
 
 
 def _effect_parameters(res, effect: str) -> dict[str, tuple[float, float]]:
@@ -336,15 +325,16 @@ def discover(
     max_steps: int = 4,
     progress=None,
 ) -> DiscrepancyResult:
-    """Run the discrepancy workflow on `rec` (needs a robot log, a tool and static dwells).
+    """Run the discrepancy workflow on `rec` (needs a robot log and a tool).
 
     `candidates`: effect names to try (default: the whole library of DESIGN section 7).
-    Each round scores every remaining candidate at once with Rao's score test
-    (`robtraj.estimate.calibration.score_effects`: one pass over the recording, one
-    compilation); the significant ones are refitted in order of their ΔBIC and the first
-    whose refit confirms it by the likelihood-ratio test is named. After each named
-    effect the residual is tested for structure against every variable; when none is
-    left the search stops.
+    While the gap exceeds its floor, each round scores every remaining candidate at once
+    with Rao's score test (`robtraj.estimate.calibration.score_effects`: one pass over
+    the recording, one compilation); the significant ones are refitted in order of their
+    ΔBIC, and the first whose refit confirms it by the likelihood-ratio test and lowers
+    the held-out gap (two folds of alternate time blocks) by more than the floor is
+    named. The search stops when the gap is within its floor, when no candidate
+    qualifies, or when no structure is left against any variable.
     """
     from ..estimate.calibration import fit, score_effects
 
@@ -353,31 +343,44 @@ def discover(
     bad = [c for c in candidates if c not in EFFECT_NAMES]
     if bad:
         raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
-    say("emission angles and the noise of the static segments")
-    angles = _observation_angles(rec)
-    centre, sigma, rel_se = _static_noise(rec, angles)
-    sig_obs = np.interp(np.nan_to_num(angles, nan=float(np.median(centre))), centre, sigma)
-    weights = np.where(rec.visible, 1.0 / sig_obs**2, 0.0)
-    var3 = np.where(rec.visible, 3.0 * sig_obs**2, np.nan)
-    noise = float(np.sqrt(np.nanmean(var3) / 3.0))
+    say("emission angles and the noise model of the recording")
+    angles = observation_angles(rec)
+    noise_model, var = observation_noise(rec, angles)
+    weights = np.where(rec.visible & np.isfinite(var), 1.0 / var, 0.0)
+    noise = float(np.sqrt(np.nanmean(var)))
     variables = _frame_variables(rec, angles)
 
     say("nominal fit")
     current = fit(rec, weights=weights)
+    var3 = _aligned(rec, current, 3.0 * var)
+    weights_c = _aligned(rec, current, weights)
     n_obs = int(np.isfinite(current.residuals[..., 0]).sum()) * 3
-    gap0 = _gap(current, var3)
+    gap0 = _gap(current, var3, _share(current))
     gaps = [gap0]
-    localisation = _structure(current.residuals, weights, variables)
+    localisation = _structure(current.residuals, weights_c, variables)
     before = {
         k: _binned_rms(current.residuals, variables, k)
         for k in ("time", "joint 2", "emission angle")
         if k in variables
     }
+
+    def floor_of(res) -> float:
+        return _gap_floor(res, var3, noise_model.level_rel_se)
+
+    floor = floor_of(current)
+    heldout = _HeldOut(rec, weights, var)
+    heldout_gap: float | None = None
     steps: list[Step] = []
+    rejected: list[dict[str, Any]] = []
     named: list[str] = []
+    stopped = "max_steps"
     for _ in range(max_steps):
+        if gaps[-1] <= floor:
+            stopped = "gap_within_floor"
+            break
         remaining = [c for c in candidates if c not in named]
         if not remaining:
+            stopped = "no_candidates"
             break
         say(f"score test of {len(remaining)} candidate effects")
         alpha = ALPHA / len(remaining)
@@ -400,29 +403,44 @@ def discover(
                 continue
             lr = float(current.chi2 - r.chi2)
             score = _test(lr, k, n_obs, likelihood_ratio=lr)
-            if score["p_value"] < alpha and score["delta_bic"] > 0:
+            if not (score["p_value"] < alpha and score["delta_bic"] > 0):
+                continue
+            say(f"held-out check of {cand}")
+            if heldout_gap is None:
+                heldout_gap = heldout.gap(tuple(named), current)
+            after = heldout.gap((*named, cand), r)
+            score.update(heldout_gap_before_m=heldout_gap, heldout_gap_after_m=after)
+            if heldout_gap - after > floor:
                 accepted = (cand, r, score)
+                heldout_gap = after
                 break
+            rejected.append({"effect": cand, **score})
         if accepted is None:
+            stopped = "nothing_qualifies"
             break
         best, current, score = accepted
         named.append(best)
-        gaps.append(_gap(current, var3))
+        gaps.append(_gap(current, var3, _share(current)))
+        floor = floor_of(current)
         steps.append(Step(best, _effect_parameters(current, best), gaps[-1], score, scores))
         say(f"named {best}: gap {gaps[-2] * 1e6:.1f} → {gaps[-1] * 1e6:.1f} µm")
         # nothing structured left against any variable: no further effect can stand out
         if not any(
-            v["significant"] for v in _structure(current.residuals, weights, variables).values()
+            v["significant"] for v in _structure(current.residuals, weights_c, variables).values()
         ):
+            stopped = "no_structure"
             break
-    structure = _structure(current.residuals, weights, variables)
+    else:
+        if gaps[-1] <= floor:
+            stopped = "gap_within_floor"
+    structure = _structure(current.residuals, weights_c, variables)
     after = {k: _binned_rms(current.residuals, variables, k) for k in before}
-    unexplained = any(v["significant"] for v in structure.values())
+    unexplained = gaps[-1] > floor and any(v["significant"] for v in structure.values())
     return DiscrepancyResult(
         gap_before_m=gap0,
         steps=steps,
         gap_after_m=gaps[-1],
-        gap_floor_m=_gap_floor(current, var3, float(np.sqrt(np.sum(rel_se**2)) / rel_se.size)),
+        gap_floor_m=floor,
         unexplained=unexplained,
         structure=structure,
         localisation=localisation,
@@ -431,4 +449,7 @@ def discover(
         gaps=gaps,
         residual_before=before,
         residual_after=after,
+        noise=noise_model,
+        rejected=rejected,
+        stopped=stopped,
     )

@@ -68,16 +68,43 @@ def undetermined_rigid(calib) -> list[str]:
     return [n for n in names if n.startswith(("camera_from_base.", "flange_from_tool."))]
 
 
+def weak_rigid(calib) -> list[dict]:
+    """camera←base and flange←tool parameters determined only to a σ above the
+    calibration's stated tolerance (``identifiability.weak``)."""
+    weak = (getattr(calib, "identifiability", None) or {}).get("weak", [])
+    return [w for w in weak if isinstance(w, dict) and "parameter" in w]
+
+
+def _sigma_text(w: dict) -> str:
+    unit, k = ("µm", 1e6) if ".t" in w["parameter"] else ("µrad", 1e6)
+    return (
+        f"{w['parameter']} σ {w['sigma'] * k:.0f} {unit} (tolerance {w['tolerance'] * k:.0f} "
+        f"{unit})"
+    )
+
+
 def warn_undetermined(calib, name: str, consequence: str) -> None:
-    """One warning line on stderr when `calib` leaves a rigid transform undetermined."""
+    """Warning lines on stderr when `calib` leaves a rigid transform undetermined, or
+    determines one only poorly (σ above its tolerance)."""
     import sys
 
+    fix = (
+        "calibrate on a run with reorientations about two axes (`robtraj calibrate` lists "
+        "the poses to add)"
+    )
     bad = undetermined_rigid(calib)
     if bad:
         print(
             f"robtraj: warning: {name} does not determine {', '.join(bad)} (the recording it "
             f"came from cannot tell them apart); {consequence} on them by an unknown amount: "
-            "calibrate on a run with reorientations about two axes",
+            + fix,
+            file=sys.stderr,
+        )
+    weak = weak_rigid(calib)
+    if weak:
+        print(
+            f"robtraj: warning: {name} determines {', '.join(map(_sigma_text, weak))} only "
+            f"poorly; {consequence} on them by about that much: " + fix,
             file=sys.stderr,
         )
 

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 from .._errors import UserError
 from . import _output
 from ._analysis_inputs import warn_undetermined
+
+#: poses listed when the recording leaves a rigid transform undetermined or weak
+SUGGESTED_POSES = 6
 
 #: exit status when the solve stopped before its convergence criterion held
 NOT_CONVERGED = 3
@@ -86,7 +90,14 @@ def run(args: argparse.Namespace) -> int:
     from ..estimate.calibration import fit
 
     with progress_status("calibrating") as say:
-        res = fit(rec, estimate=estimate, robust=args.robust, max_iter=args.max_steps, progress=say)
+        res = fit(
+            rec,
+            estimate=estimate,
+            robust=args.robust,
+            max_iter=args.max_steps,
+            progress=say,
+            suggest=SUGGESTED_POSES,
+        )
     doc = res.to_json()
     text = json.dumps(doc, indent=1)
     out = Path(args.out)
@@ -100,7 +111,12 @@ def run(args: argparse.Namespace) -> int:
         f"residual RMS {res.residual_rms_m * 1e6:.1f} µm, "
         f"{'converged' if res.converged else 'NOT converged'} in {res.iterations} steps",
         f"camera<-base position [{t[0]:.5f}, {t[1]:.5f}, {t[2]:.5f}] m "
-        + (f"(σ {1e6 * s_cfb:.1f} µm)" if np.isfinite(s_cfb) else "(σ: not determined)"),
+        + (
+            f"(σ {1e6 * s_cfb:.1f} µm; σ are the larger of Gauss–Newton and cluster-robust "
+            f"over {res.n_clusters} clusters)"
+            if np.isfinite(s_cfb)
+            else "(σ: not determined)"
+        ),
     ]
     if "time_offset" in res.estimated:
         lines.append(
@@ -114,9 +130,36 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"{res.outlier_frames.size} outlier frames")
     if not res.converged:
         lines.append(f"NOT converged: {res.convergence}")
+    lines += _next_pose_lines(res.identifiability.get("next_poses"))
     print("\n".join(lines))
     warn_undetermined(res, str(out), "iso9283, deviation and report results depend")
     return 0 if res.converged else NOT_CONVERGED
+
+
+def _next_pose_lines(nxt) -> list[str]:
+    """The suggested poses, each with the largest σ of the watched translations and
+    rotations once it and those above it are added (Gauss–Newton prediction)."""
+    if not nxt:
+        return []
+
+    def worst(sig: dict, kind: str) -> str:
+        vals = [v for k, v in sig.items() if k.rsplit(".", 1)[1][0] == kind]
+        if not vals:
+            return ""
+        if any(v is None for v in vals):
+            return "not determined"
+        return f"{max(vals) * 1e6:.1f} {'µm' if kind == 't' else 'µrad'}"
+
+    out = [
+        f"to determine them, measure next (static, {nxt['dwell_s']:g} s each; joint angles "
+        "in °) → largest σ of the translations / rotations once added:"
+    ]
+    before = nxt["sigma_before"]
+    out.append(f"   now: {worst(before, 't') or '–'} / {worst(before, 'r') or '–'}")
+    for k, (q, sig) in enumerate(zip(nxt["joints_rad"], nxt["sigma_after"])):
+        angles = ", ".join(f"{math.degrees(x):.1f}" for x in q)
+        out.append(f"  {k + 1}. [{angles}] → {worst(sig, 't') or '–'} / {worst(sig, 'r') or '–'}")
+    return out
 
 
 def check_leds_seen(rec, name: str) -> None:

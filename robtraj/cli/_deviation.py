@@ -46,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
         "frames_jumped_unconstrained": int(np.sum(dev.jumped)),
         "frames_held": int(np.sum(dev.held)),
         "calibration_undetermined": _analysis_inputs.undetermined_rigid(calib),
+        "calibration_weak": _analysis_inputs.weak_rigid(calib),
     }
     print(
         f"path deviation over {s.n} frames on linear moves: max {s.distance_max * 1e3:.3f} mm, "

@@ -59,14 +59,23 @@ def run(args: argparse.Namespace) -> int:
         params = ", ".join(
             f"{k} = {v['value']:.4g} ± {v['sigma']:.2g}" for k, v in s["parameters"].items()
         )
+        held = s["score"]
         print(
             f"+ {s['effect']}: gap {s['gap_after_m'] * 1e6:.1f} µm "
-            f"(ΔBIC {s['score']['delta_bic']:.0f}); {params}"
+            f"(ΔBIC {held['delta_bic']:.0f}; held-out gap {held['heldout_gap_before_m'] * 1e6:.1f}"
+            f" → {held['heldout_gap_after_m'] * 1e6:.1f} µm); {params}"
+        )
+    for r in doc["rejected"]:
+        print(
+            f"  not named: {r['effect']} (significant, but the held-out gap moves only "
+            f"{r['heldout_gap_before_m'] * 1e6:.1f} → {r['heldout_gap_after_m'] * 1e6:.1f} µm)"
         )
     print(
         f"gap after: {doc['gap_after_m'] * 1e6:.1f} µm "
         f"(what a complete model leaves by chance: {doc['gap_floor_m'] * 1e6:.1f} µm)"
     )
+    if doc["stopped"] == "gap_within_floor":
+        print("stopped: the gap is within its floor, nothing more can be told from the noise")
     if doc["unexplained"]:
         print(f"unexplained structure remains, against: {', '.join(doc['unexplained_where'])}")
         if doc["steps"]:

@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     doc = {
         **res.to_json(),
         "calibration_undetermined": _analysis_inputs.undetermined_rigid(calib),
+        "calibration_weak": _analysis_inputs.weak_rigid(calib),
     }
     _analysis_inputs.write_json(args.json, doc)
     return report_missing(res)

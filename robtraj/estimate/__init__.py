@@ -1,10 +1,12 @@
 """Estimation: static segments, LED registration, weighting schemes, per-frame poses, and
-the one least-squares engine (`solve`, `identifiability`, `covariance`).
+the one least-squares engine (`solve`, `identifiability`, `covariance`,
+`robust_covariance`).
 
 Bundle calibration lives in `robtraj.estimate.calibration`.
 """
 
 from ._base_frame import base_frame_poses
+from ._noise import NoiseModel, estimate_noise, observation_angles, observation_noise
 from ._poses import (
     PoseEstimate,
     chunked_led_variance,
@@ -17,7 +19,7 @@ from ._poses_io import read_poses, write_poses
 from ._registration import Registration, register_leds
 from ._solve import LeastSquares, Solution, default_solver, normal_at, solve
 from ._static import static_segments
-from ._uncertainty import RCOND, column_scale, covariance, identifiability
+from ._uncertainty import RCOND, column_scale, covariance, identifiability, robust_covariance
 from ._weighting import (
     LedFeatures,
     get_weighting,
@@ -27,11 +29,16 @@ from ._weighting import (
 )
 
 __all__ = [
+    "NoiseModel",
+    "estimate_noise",
+    "observation_angles",
+    "observation_noise",
     "RCOND",
     "LeastSquares",
     "Solution",
     "column_scale",
     "covariance",
+    "robust_covariance",
     "default_solver",
     "identifiability",
     "normal_at",

@@ -9,7 +9,9 @@
 3. Flange poses: forward kinematics of the group's joints (nominal robot + fixed effects).
 4. Robot-world/hand-eye ``camera_from_tool_i = Z · base_from_flange_i · X`` solved by
    Shah's closed form (Kronecker null space of the rotation equations, then
-   orthonormalisation, then linear least squares for the translations).
+   orthonormalisation, then linear least squares for the translations); for a run whose
+   flange does not rotate about two axes, a point registration of the tool origins with
+   the nominal flange←tool translation instead (`closed_form_start`).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ _DISTINCT = 1e-3  # [rad] joint vectors closer than this are the same pose
 _ENOUGH_DWELLS = 6  # fewer distinct dwells: add single moving frames as poses
 
 
-def _dwells(data: CalibrationData, min_dwell: float) -> list[np.ndarray]:
+def dwells(data: CalibrationData, min_dwell: float) -> list[np.ndarray]:
     """Frame-index arrays (into `data`) of static dwells."""
     speed = np.abs(np.gradient(data.joints, data.log_time, axis=0)).max(1)
     k = np.clip(np.searchsorted(data.log_time, data.time, side="right") - 1, 0, None)
@@ -85,11 +87,11 @@ def pose_pairs(
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """``(camera_from_tool (G, 7), base_from_flange (G, 7), n_dwells)`` as jaxlie
     ``wxyz_xyz`` for the groups (static dwells first, then moving frames if needed)."""
-    dwells = _dwells(data, min_dwell)
+    groups_static = dwells(data, min_dwell)
     moving = np.ones(data.n_frames, bool)
-    for d in dwells:
+    for d in groups_static:
         moving[d] = False
-    groups = list(dwells)
+    groups = list(groups_static)
     q_all = data.joints_at(np.arange(data.n_frames))
     q_groups = [q_all[d].mean(0) for d in groups]
     if not groups or _distinct(np.array(q_groups)) < _ENOUGH_DWELLS:
@@ -131,12 +133,50 @@ def pose_pairs(
     q_pad = np.concatenate([q, np.repeat(q[:1], pad, 0)])
     base_from_flange = np.asarray(_flange(data.robot, effects, jnp.asarray(q_pad)))[:n_groups]
     camera_from_tool, base_from_flange = camera_from_tool[valid], base_from_flange[valid]
-    if _distinct(q[valid]) < 3 or _rotation_rank(base_from_flange[:, :4]) < 2:
+    if _distinct(q[valid]) < 3:
         raise UserError(
             "too few distinct robot poses with the tool seen: calibration needs at least 3 "
-            "poses rotated about at least two different axes"
+            "poses, rotated about two different axes to determine every parameter"
         )
-    return camera_from_tool, base_from_flange, len(dwells)
+    return camera_from_tool, base_from_flange, len(groups_static)
+
+
+def closed_form_start(
+    camera_from_tool: np.ndarray, base_from_flange: np.ndarray, flange_from_tool: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(camera_from_base, flange_from_tool)`` (``wxyz_xyz``) to start the refinement
+    from: Shah's closed form (`robot_world_hand_eye`) when the flange rotates about two
+    different axes; otherwise (a run that keeps the tool's orientation, or turns it about
+    one axis) the camera←base that best maps the flange's tool origins onto the measured
+    tool positions with the nominal `flange_from_tool` translation (Kabsch), and the mean
+    flange←tool rotation that fits then. Such a run cannot determine every parameter; the
+    refinement names what it leaves undetermined."""
+    if _rotation_rank(base_from_flange[:, :4]) >= 2:
+        return robot_world_hand_eye(camera_from_tool, base_from_flange)
+    A = np.asarray(jax.vmap(lambda p: jaxlie.SE3(p).as_matrix())(jnp.asarray(camera_from_tool)))
+    B = np.asarray(jax.vmap(lambda p: jaxlie.SE3(p).as_matrix())(jnp.asarray(base_from_flange)))
+    t_x = np.asarray(flange_from_tool)[4:]
+    src = np.einsum("gij,j->gi", B[:, :3, :3], t_x) + B[:, :3, 3]  # tool origins, base frame
+    dst = A[:, :3, 3]  # tool origins, camera frame
+    sc, dc = src - src.mean(0), dst - dst.mean(0)
+    if np.linalg.svd(sc, compute_uv=False)[1] < 1e-3 * max(np.abs(sc).max(), 1e-12):
+        raise UserError(
+            "the tool is neither rotated about two axes nor moved off a line: camera←base "
+            "cannot be determined from this recording"
+        )
+    u, _, vt = np.linalg.svd(dc.T @ sc)
+    rz = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    tz = dst.mean(0) - rz @ src.mean(0)
+    # R_A = R_Z R_B R_X for every pose: the chordal mean of R_B⁻¹ R_Z⁻¹ R_A
+    rx = _orthonormal(np.einsum("gji,kj,gkl->il", B[:, :3, :3], rz, A[:, :3, :3]))
+    Z = np.eye(4)
+    Z[:3, :3], Z[:3, 3] = rz, tz
+    X = np.eye(4)
+    X[:3, :3], X[:3, 3] = rx, t_x
+    return (
+        np.asarray(jaxlie.SE3.from_matrix(jnp.asarray(Z)).wxyz_xyz),
+        np.asarray(jaxlie.SE3.from_matrix(jnp.asarray(X)).wxyz_xyz),
+    )
 
 
 def _orthonormal(m: np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from ..model import (
     Effects,
@@ -161,8 +161,10 @@ def _led_effect_columns(problem: BundleProblem) -> list[int]:
     return cols
 
 
-def _chunk_terms(g, p, problem, frames):
-    """Per-chunk contributions to the normal equations in the ``[g, vec(p)]`` coordinates.
+def _chunk_terms(g, p, problem, frames, per_frame=False):
+    """Per-chunk contributions to the normal equations in the ``[g, vec(p)]`` coordinates
+    (``H`` blocks summed over the chunk, or per frame with `per_frame`; ``b`` per frame:
+    `(C, q)` and `(C, m, 3)`).
 
     Two-stage chain rule (forward mode): per frame, the tool-pose tangent ξ of
     ``T(g) = T(0) exp(ξ)`` w.r.t. g (q tangents, per frame only); per LED, the LED
@@ -208,12 +210,13 @@ def _chunk_terms(g, p, problem, frames):
     r = sw * (frames.measured - pred)
     jg = sw[..., None] * jac_g
     jp = sw[..., None] * jac_p
+    c = "c" if per_frame else ""
     return (
-        jnp.einsum("cmiq,cmir->qr", jg, jg),
-        jnp.einsum("cmiq,cmia->qma", jg, jp),
-        jnp.einsum("cmia,cmib->mab", jp, jp),
-        jnp.einsum("cmiq,cmi->q", jg, r),
-        jnp.einsum("cmia,cmi->ma", jp, r),
+        jnp.einsum(f"cmiq,cmir->{c}qr", jg, jg),
+        jnp.einsum(f"cmiq,cmia->{c}qma", jg, jp),
+        jnp.einsum(f"cmia,cmib->{c}mab", jp, jp),
+        jnp.einsum("cmiq,cmi->cq", jg, r),
+        jnp.einsum("cmia,cmi->cma", jp, r),
         jnp.sum(r * r),
     )
 
@@ -226,7 +229,7 @@ def _skew(v: Array) -> Array:
     )
 
 
-def _chunk_terms_rigid(g, p, problem, frames):
+def _chunk_terms_rigid(g, p, problem, frames, per_frame=False):
     """`_chunk_terms` for LEDs that move rigidly with the tool (no LED-level effect).
 
     With ``y = T exp(ξ) p``: ``∂y/∂ξ = R [I, −[p]×]`` and ``∂y/∂p = R``, so the rotation
@@ -255,31 +258,70 @@ def _chunk_terms_rigid(g, p, problem, frames):
     b_xi = jnp.concatenate(
         [jnp.einsum("cm,cmi->ci", w, u), jnp.einsum("cm,cmi->ci", w, jnp.cross(p[None], u))], -1
     )
-    hgg = jnp.einsum("caq,cab,cbr->qr", tg, a, tg)
-    kk = jnp.einsum("cm,caq->maq", w, tg)  # (M, 6, q)
+    c = "c" if per_frame else ""
+    hgg = jnp.einsum(f"caq,cab,cbr->{c}qr", tg, a, tg)
+    kk = jnp.einsum(f"cm,caq->{c}maq", w, tg)  # (M, 6, q)
     blk = jnp.concatenate([jnp.broadcast_to(eye, p.shape[:1] + (3, 3)), _skew(p)], -2)  # (M,6,3)
-    hgp = jnp.einsum("maq,mab->qmb", kk, blk)
-    hpp = w.sum(0)[:, None, None] * eye
-    bg = jnp.einsum("caq,ca->q", tg, b_xi)
-    bp = jnp.einsum("cm,cmi->mi", w, u)
+    hgp = jnp.einsum(f"{c}maq,mab->{c}qmb", kk, blk)
+    hpp = (w if per_frame else w.sum(0))[..., None, None] * eye
+    bg = jnp.einsum("caq,ca->cq", tg, b_xi)
+    bp = w[..., None] * u
     return hgg, hgp, hpp, bg, bp, jnp.sum(w * jnp.sum(e * e, -1))
+
+
+def chunk_terms(g, p, problem: BundleProblem, frames: Frames, per_frame: bool = False):
+    """One chunk's terms of the normal equations (`_chunk_terms_rigid` where the LEDs move
+    rigidly with the tool, else `_chunk_terms`)."""
+    fn = _chunk_terms_rigid if problem.rigid_leds else _chunk_terms
+    return fn(g, p, problem, frames, per_frame)
 
 
 @eqx.filter_jit
 def normal_equations(g: Array, p: Array, problem: BundleProblem, chunks: Frames):
     """Accumulate ``(Hgg, Hgp, Hpp, bg, bp, cost)`` over all chunks (`lax.scan`)."""
+    return _accumulate(g, p, problem, chunks, None, 0)[0]
+
+
+@eqx.filter_jit
+def normal_equations_clustered(
+    g: Array,
+    p: Array,
+    problem: BundleProblem,
+    chunks: Frames,
+    cluster: Int[Array, "chunks chunk"],
+    n_clusters: int,
+):
+    """`normal_equations` and every term summed per cluster of frames: `cluster` gives
+    each frame's cluster in ``[0, n_clusters)`` (padding frames carry no weight).
+    Returns ``((Hgg, Hgp, Hpp, bg, bp, cost), (Hgg, Hgp, Hpp, bg, bp) per cluster)``
+    with a leading cluster axis `(G, ...)` on the latter."""
+    return _accumulate(g, p, problem, chunks, cluster, n_clusters)
+
+
+def _accumulate(g, p, problem, chunks, cluster, n_clusters):
     q, m = g.shape[0], p.shape[0]
     z = jnp.zeros
-    init = (z((q, q)), z((q, m, 3)), z((m, 3, 3)), z(q), z((m, 3)), z(()))
+    shapes = ((q, q), (q, m, 3), (m, 3, 3), (q,), (m, 3))
+    init = (*(z(s) for s in shapes), z(()))
+    per = tuple(z((n_clusters, *s)) for s in shapes) if cluster is not None else ()
 
-    terms_fn = _chunk_terms_rigid if problem.rigid_leds else _chunk_terms
+    def body(carry, xs):
+        acc, clustered = carry
+        frames, ids = xs
+        if ids is None:
+            hgg, hgp, hpp, bg, bp, cost = chunk_terms(g, p, problem, frames)
+            terms = (hgg, hgp, hpp, bg.sum(0), bp.sum(0), cost)
+        else:
+            frame_terms = chunk_terms(g, p, problem, frames, per_frame=True)
+            terms = (*(t.sum(0) for t in frame_terms[:5]), frame_terms[5])
+            clustered = tuple(
+                c + jax.ops.segment_sum(t, ids, n_clusters)
+                for c, t in zip(clustered, frame_terms[:5])
+            )
+        return (tuple(a + t for a, t in zip(acc, terms)), clustered), None
 
-    def body(acc, frames):
-        terms = terms_fn(g, p, problem, frames)
-        return tuple(a + t for a, t in zip(acc, terms)), None
-
-    acc, _ = jax.lax.scan(body, init, chunks)
-    return acc
+    (acc, clustered), _ = jax.lax.scan(body, (init, per), (chunks, cluster))
+    return acc, clustered
 
 
 @eqx.filter_jit
@@ -431,7 +473,9 @@ def _probe_terms(g, problem: BundleProblem, obs: ProbeObservations):
 
     r = -f(g)
     j = jax.jacfwd(f)(g)
-    return j.T @ j, j.T @ r, jnp.sum(r * r)
+    jp, rp = j.reshape(-1, 6, j.shape[-1]), r.reshape(-1, 6)
+    per_pose = (jnp.einsum("nkq,nkr->nqr", jp, jp), jnp.einsum("nkq,nk->nq", jp, rp))
+    return j.T @ j, j.T @ r, jnp.sum(r * r), per_pose
 
 
 class BundleData(eqx.Module):
@@ -457,17 +501,52 @@ def bundle_normal(theta: Array, data: BundleData):
     """``(H, b, cost)`` of the bundle problem in θ (`robtraj.estimate._solve`): LED
     observations accumulated over the chunks, plus the probe poses."""
     g, p = split_theta(theta, data)
-    hgg, hgp, hpp, bg, bp, c = normal_equations(g, p, data.problem, data.chunks)
+    terms = normal_equations(g, p, data.problem, data.chunks)
+    return _in_theta(g, data, terms)[:3]
+
+
+@eqx.filter_jit
+def bundle_normal_clustered(
+    theta: Array, data: BundleData, cluster: Int[Array, "chunks chunk"], n_clusters: int
+):
+    """`bundle_normal`, and the normal matrix `(G, P, P)` and score ``b`` `(G, P)` of each
+    cluster of frames in θ (`cluster` as in `normal_equations_clustered`; each probe pose
+    is a cluster of its own, after them): the input of `robust_covariance`."""
+    g, p = split_theta(theta, data)
+    terms, (hgg, hgp, hpp, cg, cp_) = normal_equations_clustered(
+        g, p, data.problem, data.chunks, cluster, n_clusters
+    )
+    h, b, c, probe = _in_theta(g, data, terms)
+    hs = jax.vmap(h_in_theta, in_axes=(0, 0, 0, None))(hgg, hgp, hpp, data.basis)
+    scores = jnp.concatenate([cg, cp_.reshape(n_clusters, -1) @ data.basis], -1)
+    if probe is not None:
+        h2, b2 = probe
+        nc = data.basis.shape[1]
+        hs = jnp.concatenate([hs, jnp.pad(h2, ((0, 0), (0, nc), (0, nc)))])
+        scores = jnp.concatenate([scores, jnp.pad(b2, ((0, 0), (0, nc)))])
+    return h, b, c, hs, scores
+
+
+def _in_theta(g, data: BundleData, terms):
+    """The accumulated ``[g, vec(p)]`` terms (plus the probe poses) in θ coordinates."""
+    hgg, hgp, hpp, bg, bp, c = terms
+    probe = None
     if data.probe is not None:
-        h2, b2, c2 = _probe_terms(g, data.problem, data.probe)
+        h2, b2, c2, probe = _probe_terms(g, data.problem, data.probe)
         hgg, bg, c = hgg + h2, bg + b2, c + c2
+    b = jnp.concatenate([bg, data.basis.T @ bp.reshape(-1)])
+    return h_in_theta(hgg, hgp, hpp, data.basis), b, c, probe
+
+
+def h_in_theta(hgg, hgp, hpp, basis: Array) -> Array:
+    """The normal matrix in θ = [g, constellation coefficients] from its ``[g, vec(p)]``
+    blocks (symmetrised)."""
     q, m = hgg.shape[0], hpp.shape[0]
-    basis3 = data.basis.reshape(m, 3, -1)
-    hgp_b = hgp.reshape(q, 3 * m) @ data.basis
+    basis3 = basis.reshape(m, 3, -1)
+    hgp_b = hgp.reshape(q, 3 * m) @ basis
     hpp_b = jnp.einsum("mac,mab,mbd->cd", basis3, hpp, basis3)
     h = jnp.block([[hgg, hgp_b], [hgp_b.T, hpp_b]])
-    b = jnp.concatenate([bg, data.basis.T @ bp.reshape(-1)])
-    return 0.5 * (h + h.T), b, c
+    return 0.5 * (h + h.T)
 
 
 def recentre(problem: BundleProblem, theta: np.ndarray, basis: np.ndarray) -> BundleProblem:

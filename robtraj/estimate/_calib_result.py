@@ -75,6 +75,10 @@ class CalibrationResult:
     initial: dict[str, Pose] = dataclasses.field(default_factory=dict)
     unseen_leds: tuple[int, ...] = ()
     robust: str | None = None
+    #: cluster-robust (sandwich) covariance over `n_clusters` clusters of observations
+    #: (`robtraj.estimate.robust_covariance`), same layout as `covariance`
+    covariance_robust: np.ndarray | None = None
+    n_clusters: int = 0
 
     @property
     def time_offset(self) -> float:
@@ -82,9 +86,26 @@ class CalibrationResult:
 
     @property
     def sigma(self) -> dict[str, float]:
-        """Standard deviation per parameter name (inf for the parameters the recording does
-        not determine, ``identifiability["undetermined"]``)."""
-        out = dict(zip(self.parameter_names, np.sqrt(np.clip(np.diag(self.covariance), 0, None))))
+        """Standard deviation per parameter name, the one to quote: the larger of the
+        Gauss–Newton (`sigma_model`) and the cluster-robust one (`covariance_robust`,
+        which does not shrink when the residual is not noise; taking the larger guards
+        against its downward bias with few clusters); inf for the parameters the
+        recording does not determine (``identifiability["undetermined"]``)."""
+        var = np.clip(np.diag(self.covariance), 0, None)
+        if self.covariance_robust is not None and np.shape(self.covariance_robust) == np.shape(
+            self.covariance
+        ):
+            var = np.maximum(var, np.clip(np.diag(self.covariance_robust), 0, None))
+        return self._named_sigma(var)
+
+    @property
+    def sigma_model(self) -> dict[str, float]:
+        """Gauss–Newton standard deviation per parameter name (``s²H⁺``: right when the
+        residual is noise of the assumed model), inf where undetermined."""
+        return self._named_sigma(np.clip(np.diag(self.covariance), 0, None))
+
+    def _named_sigma(self, var: np.ndarray) -> dict[str, float]:
+        out = dict(zip(self.parameter_names, np.sqrt(var).tolist()))
         for name in (self.identifiability or {}).get("undetermined", []):
             if name in out:
                 out[name] = float("inf")
@@ -110,6 +131,12 @@ class CalibrationResult:
             "covariance": {
                 "parameters": list(self.parameter_names),
                 "matrix": np.asarray(self.covariance).tolist(),
+            },
+            "covariance_robust": None
+            if self.covariance_robust is None
+            else {
+                "matrix": np.asarray(self.covariance_robust).tolist(),
+                "clusters": self.n_clusters,
             },
             "residual_rms_m": self.residual_rms_m,
             "effects": {k: np.asarray(v).tolist() for k, v in self.effects.items()},
@@ -149,6 +176,7 @@ class CalibrationResult:
                 )
 
             cov = d.get("covariance", {})
+            robust = d.get("covariance_robust") or {}
             gauge = d.get("gauge", {})
             gauge = gauge if isinstance(gauge, dict) else {"kind": gauge}
             effects = dict(d.get("effects", {}))
@@ -184,6 +212,10 @@ class CalibrationResult:
                 noise_model=d.get("noise_model", {}),
                 unseen_leds=tuple(d.get("unseen_leds", ())),
                 robust=d.get("robust"),
+                covariance_robust=(
+                    np.asarray(robust["matrix"], float) if "matrix" in robust else None
+                ),
+                n_clusters=int(robust.get("clusters", 0)),
             )
         except (KeyError, TypeError, ValueError) as e:
             raise UserError(f"not a robtraj calibration (CALIB.json): {e}") from None

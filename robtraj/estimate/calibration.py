@@ -25,10 +25,12 @@ of the `Effects` (`estimate=`), from every usable frame:
   the whole recording).
 - **Initialisation** in closed form (`_calib_init`): weighted Procrustes tool poses on
   static dwells + Shah's robot-world/hand-eye solution.
-- **Noise model**: by default the per-LED noise variance is estimated from the
-  residuals as a function of the LED's emission angle (quantile bins, linear
-  interpolation) and the fit repeated with inverse-variance weights, so that the
-  covariance ``σ̂² (JᵀWJ)⁻¹`` (``σ̂² = χ²/(n − p)``) is honest for heteroscedastic data.
+- **Noise model**: by default every observation is weighted by the inverse of its
+  variance from the recording's noise model (`robtraj.estimate.observation_noise`:
+  emission angle from per-frame tool poses, distance and LED, from pair-distance second
+  differences), independent of the robot model and of the start, so the weights do not
+  absorb what the model misses; the covariance ``σ̂² (JᵀWJ)⁻¹`` (``σ̂² = χ²/(n − p)``) widens when the residual
+  exceeds that noise.
 - **Robust losses** (`robust="huber"|"cauchy"`): IRLS weights on the per-LED
   noise-normalised residual; frames whose residuals stand out are reported.
 - **Identifiability**: null directions of the column-scaled normal matrix are named;
@@ -58,11 +60,20 @@ from ..model import EFFECT_NAMES, Effects
 from ..recording import Pose, Recording
 from . import _calib_problem as cp
 from ._calib_data import CalibrationData, prepare
-from ._calib_init import pose_pairs, robot_world_hand_eye
-from ._calib_problem import BundleData, BundleProblem, Frames, bundle_normal, residuals
+from ._calib_init import closed_form_start, dwells, pose_pairs, robot_world_hand_eye
+from ._calib_problem import (
+    BundleData,
+    BundleProblem,
+    Frames,
+    bundle_normal,
+    bundle_normal_clustered,
+    residuals,
+)
 from ._calib_result import CalibrationResult, _pose_of, _se3, _wxyz_xyz
+from ._next_poses import next_poses
+from ._noise import observation_noise
 from ._solve import normal_at, solve
-from ._uncertainty import covariance, identifiability
+from ._uncertainty import covariance, identifiability, robust_covariance
 
 __all__ = [
     "BundleData",
@@ -72,6 +83,7 @@ __all__ = [
     "align_to_gauge",
     "bundle_normal",
     "fit",
+    "predict_residuals",
     "residuals",
     "robot_world_hand_eye",
     "score_effects",
@@ -81,6 +93,15 @@ ROBUST = ("huber", "cauchy")
 _ROBUST_K = {"huber": 2.0, "cauchy": 2.0}
 _TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
 _OUTLIER_U = 4.0  # frames whose noise-normalised residual RMS exceeds this are outliers
+#: [s] frames in motion form clusters of this span in the robust covariance (a static
+#: dwell is one cluster): a model error is shared by neighbouring frames; longer for
+#: long recordings, so that there are at most `MAX_CLUSTERS`
+CLUSTER_SPAN = 0.25
+MAX_CLUSTERS = 400
+#: σ above which a determined rigid-transform parameter is reported as weak: translation
+#: [m] ("t…") and rotation [rad] ("r…", 0.1 mm at 1 m): a third of the tracker's noise
+#: and what ISO 9283 accuracies of tenths of a millimetre can no longer ignore
+WEAK_SIGMA = {"t": 20e-6, "r": 100e-6}
 
 
 # ----------------------------------------------------------------------------- gauge
@@ -135,26 +156,6 @@ def _global_names(effects: Effects, free: tuple[str, ...]) -> list[str]:
 # ----------------------------------------------------------------------------- fit
 
 
-def _noise_model(sq: np.ndarray, theta: np.ndarray, used: np.ndarray, by_angle: bool):
-    """Per-observation variance [m²] per coordinate from the residuals (binned by angle)."""
-    s2 = sq[used] / 3.0
-    if not by_angle or s2.size < 200:
-        v = float(np.mean(s2))
-        return np.full(sq.shape, v), {"kind": "constant", "sigma_m": [math.sqrt(v)]}
-    th = theta[used]
-    edges = np.quantile(th, np.linspace(0, 1, 11))
-    which = np.clip(np.searchsorted(edges, th, side="right") - 1, 0, 9)
-    centre = np.array([th[which == b].mean() for b in range(10) if np.any(which == b)])
-    var = np.array([s2[which == b].mean() for b in range(10) if np.any(which == b)])
-    var = np.maximum(var, 1e-3 * var.max())
-    out = np.interp(theta, centre, var)
-    return out, {
-        "kind": "emission_angle",
-        "emission_angle_deg": np.rad2deg(centre).tolist(),
-        "sigma_m": np.sqrt(var).tolist(),
-    }
-
-
 @dataclasses.dataclass(frozen=True)
 class _Setup:
     """A recording prepared for the engine: the observations (`data`), the problem at its
@@ -174,7 +175,7 @@ class _Setup:
     has_column: np.ndarray  # θ entries that are parameters (not padding of the basis)
     h0: np.ndarray
     n_residuals: int
-    normal0: tuple
+    normal0: tuple | None
 
 
 def _solve_pass(
@@ -208,6 +209,7 @@ def fit(
     max_iter: int = 50,
     chunk: int | None = None,
     progress: Callable[[str], None] | None = None,
+    suggest: int = 0,
 ) -> CalibrationResult:
     """Bundle-calibrate `recording` (see the module docstring).
 
@@ -226,6 +228,9 @@ def fit(
     - `solver`: an Optimistix least-squares solver (default: Levenberg–Marquardt,
       `robtraj.estimate.default_solver`).
     - `progress`: called with a short status line at each stage.
+    - `suggest`: when the recording leaves a rigid-transform parameter undetermined or
+      weak (σ above `WEAK_SIGMA`), list this many static robot poses that would determine
+      it best (`identifiability["next_poses"]`, `robtraj.estimate._next_poses`).
 
     **Returns:** a `CalibrationResult` (`converged` False, with the reason in
     `convergence`, when a solve stopped before its criterion held). Raises `UserError`
@@ -234,15 +239,22 @@ def fit(
     say = progress or (lambda _msg: None)
     if robust is not None and robust not in ROBUST:
         raise UserError(f"unknown robust loss {robust!r} (choose from {', '.join(ROBUST)})")
+    noise_info: dict[str, Any] = {"kind": "user_weights"}
+    noise = None
+    if weights is None:
+        say("noise model of the recording")
+        try:
+            noise, var = observation_noise(recording)
+        except UserError as err:
+            noise_info = {"kind": "uniform", "reason": str(err)}
+        else:
+            weights, noise_info = np.where(np.isfinite(var), 1.0 / var, 0.0), noise.to_dict()
+            del var
     st = _setup(recording, estimate, init, weights, chunk, say)
     data, q, free, w_user = st.data, st.q, st.free, st.w_user
     free_mask, ident = identifiability(st.h0, st.phi_names, st.has_column, st.droppable)
     if ident["dropped"]:
         say("not identifiable, fixed: " + ", ".join(d["parameter"] for d in ident["dropped"]))
-    bundle, sol = _solve_pass(
-        st, st.bundle, free_mask, solver, max_iter, say, "unweighted fit", st.normal0
-    )
-    sols = [sol]
 
     def residual_stats(b: BundleData):
         d, theta = cp.evaluate(jnp.zeros(q), b.problem.constellation, b.problem, b.chunks)
@@ -250,17 +262,10 @@ def fit(
         return d, theta, np.sum(d * d, -1)
 
     used = w_user > 0
-    noise_info: dict[str, Any] = {"kind": "user_weights"}
     w = w_user
-    if weights is None:
-        _, theta, sq = residual_stats(bundle)
-        var, noise_info = _noise_model(sq, theta, used, data.has_normals)
-        del theta, sq  # whole-recording arrays: not held through the next solve
-        w = np.where(used, 1.0 / var, 0.0)
-        del var
-        bundle = dataclasses.replace(bundle, chunks=cp.with_weights(bundle.chunks, w))
-        bundle, sol = _solve_pass(st, bundle, free_mask, solver, max_iter, say, "noise-weighted")
-        sols.append(sol)
+    label = "fit" if noise_info["kind"] == "user_weights" else "noise-weighted fit"
+    bundle, sol = _solve_pass(st, st.bundle, free_mask, solver, max_iter, say, label, st.normal0)
+    sols = [sol]
     w_noise = w
     if robust is not None:
         for it in range(5):
@@ -286,6 +291,7 @@ def fit(
 
     say("covariance and residual statistics")
     d, theta, sq = residual_stats(bundle)
+    seen_angle = float(np.quantile(theta[used], 0.99)) if data.has_normals else np.pi
     del theta
     frames_rec = data.n_recording_frames
     full_res = np.full((frames_rec, data.n_leds, 3), np.nan)
@@ -293,17 +299,24 @@ def fit(
     del d
     unused_frame, unused_led = np.nonzero(~used)
     full_res[data.frame[unused_frame], unused_led] = np.nan
-    h, _, chi2 = (np.asarray(x) for x in _normal_at_zero(bundle, len(st.names_theta)))
+    cluster, n_clusters = _clusters(data, bundle.chunks)
+    h, _, chi2, cluster_h, scores = (
+        np.asarray(x)
+        for x in bundle_normal_clustered(
+            jnp.zeros(len(st.names_theta)), bundle, jnp.asarray(cluster), n_clusters
+        )
+    )
     chi2 = float(chi2)
     n_res = 3 * int(used.sum()) + (6 * int(bundle.probe.probed.shape[0]) if bundle.probe else 0)
     cov_unit, rank = covariance(h, free_mask)
     s2 = chi2 / max(1, n_res - rank)
-    cov_theta = s2 * cov_unit
     basis = np.asarray(bundle.basis)
     t = np.zeros((q + 3 * data.n_leds, q + basis.shape[1]))
     t[:q, :q] = np.eye(q)
     t[q:, q:] = basis
-    cov_phi = t @ cov_theta @ t.T
+    cov_phi = t @ (s2 * cov_unit) @ t.T
+    cov_robust = t @ robust_covariance(h, free_mask, cluster_h, scores) @ t.T
+    del cluster_h, scores
     phi_names = st.names_theta[:q] + [
         f"constellation[LED {int(i)}].{c}" for i in data.led_ids for c in ("x", "y", "z")
     ]
@@ -331,6 +344,26 @@ def fit(
         **ident,
         "fixed_parameters": [phi_names[i] for i in range(q) if not free_mask[i]],
     }
+    sig = np.sqrt(np.clip(np.maximum(np.diag(cov_phi), np.diag(cov_robust)), 0, None))
+    ident["weak"] = _weak(phi_names[:12], sig[:12], set(ident["undetermined"]))
+    watched = list(dict.fromkeys([w["parameter"] for w in ident["weak"]] + ident["undetermined"]))
+    if watched and suggest:
+        say("poses that would determine " + ", ".join(watched))
+        nxt = _next_poses(
+            recording,
+            data,
+            bundle,
+            h,
+            free_mask,
+            s2,
+            st.names_theta,
+            watched,
+            noise,
+            seen_angle,
+            w_noise,
+            suggest,
+        )
+        ident["next_poses"] = None if nxt is None else nxt.to_json()
     converged = all(x.converged for x in sols)
     failed = [x for x in sols if not x.converged]
     return CalibrationResult(
@@ -342,6 +375,8 @@ def fit(
         estimated=free,
         parameter_names=tuple(phi_names),
         covariance=cov_phi,
+        covariance_robust=cov_robust,
+        n_clusters=int(n_clusters + (bundle.probe.probed.shape[0] if bundle.probe else 0)),
         residual_rms_m=float(np.sqrt(np.mean(sq[used]))),
         noise_sigma_m=float(np.sqrt(np.mean(sq[used]) / 3.0)),
         gauge=st.gauge,
@@ -366,6 +401,80 @@ def fit(
         unseen_leds=data.unseen_leds,
         robust=robust,
     )
+
+
+def predict_residuals(recording: Recording, calibration: CalibrationResult) -> np.ndarray:
+    """Residuals (measured − predicted) [m], camera frame, of every seen observation of
+    `recording` under `calibration`'s parameters, none refitted: `(frames, leds, 3)` in
+    the recording's frames and `calibration.led_ids` order, NaN where unseen (as
+    `CalibrationResult.residuals`, which leaves out observations of weight zero).
+
+    Serves held-out evaluation: fit with weights zero on some frames, then compare the
+    prediction there."""
+    st = _setup(recording, calibration.estimated, calibration, None, None, lambda _m: None, False)
+    data = st.data
+    d, _ = cp.evaluate(
+        jnp.zeros(st.q), st.bundle.problem.constellation, st.bundle.problem, st.bundle.chunks
+    )
+    d = np.asarray(d)[: data.n_frames]
+    out = np.full((data.n_recording_frames, data.n_leds, 3), np.nan)
+    out[data.frame] = np.where(data.seen[..., None], d, np.nan)
+    col = {int(i): k for k, i in enumerate(data.led_ids)}
+    keep = [col.get(int(i)) for i in calibration.led_ids]
+    return np.stack(
+        [out[:, k] if k is not None else np.full(out.shape[::2], np.nan) for k in keep], 1
+    )
+
+
+def _weak(names, sigma, undetermined) -> list[dict[str, Any]]:
+    """Rigid-transform parameters determined, but with σ above `WEAK_SIGMA`."""
+    out = []
+    for name, s in zip(names, sigma):
+        tol = WEAK_SIGMA[name.rsplit(".", 1)[1][0]]
+        if name not in undetermined and s > tol:
+            out.append({"parameter": name, "sigma": float(s), "tolerance": tol})
+    return out
+
+
+def _next_poses(recording, data, bundle, h, free, s2, names, watched, noise, seen_angle, w, n):
+    """`next_poses` for this calibration: the recording's noise model (or one variance
+    from the weights), the joint log, the frame rate and the distances seen."""
+    pos = np.asarray(recording.positions)
+    dist = np.linalg.norm(pos[np.isfinite(pos[..., 0])], axis=-1)
+    lo, hi = np.quantile(dist, [0.01, 0.99])
+    if noise is not None:
+        row = {int(i): k for k, i in enumerate(noise.led_ids)}
+        level = np.array([row.get(int(i), 0) for i in data.led_ids])
+
+        def variance_at(theta, r, led):
+            return noise.variance_at(theta, r, level[led])
+    else:
+        v = float(1.0 / np.mean(w[w > 0]))
+
+        def variance_at(theta, r, led):
+            return np.full(np.shape(theta), v)
+
+    rate = 1.0 / float(np.median(np.diff(data.time))) if data.n_frames > 1 else 1.0
+    return next_poses(
+        bundle, h, free, s2, names, watched, variance_at, data.joints, rate,
+        seen_angle, (0.95 * lo, 1.05 * hi), data.led_seen, n,
+    )  # fmt: skip
+
+
+def _clusters(data: CalibrationData, chunks: Frames) -> tuple[np.ndarray, int]:
+    """Cluster index of every chunked frame `(chunks, chunk)` for the robust covariance,
+    and the cluster count: each static dwell of the robot is one cluster, the frames
+    between dwells form clusters of `CLUSTER_SPAN` seconds or more (padding frames: cluster 0,
+    they carry no weight)."""
+    span = max(CLUSTER_SPAN, float(data.time[-1] - data.time[0]) / (MAX_CLUSTERS - 1))
+    label = np.floor((data.time - data.time[0]) / span).astype(np.int64)
+    for k, frames in enumerate(dwells(data, 0.2)):
+        label[frames] = -1 - k
+    _, ids = np.unique(label, return_inverse=True)
+    k, size = chunks.time.shape[:2]
+    out = np.zeros(k * size, np.int64)
+    out[: ids.size] = ids
+    return out.reshape(k, size), int(ids.max()) + 1
 
 
 def _normal_at_zero(bundle: BundleData, p: int):
@@ -439,7 +548,7 @@ def score_effects(
     return out
 
 
-def _setup(recording, estimate, init, weights, chunk, say) -> _Setup:
+def _setup(recording, estimate, init, weights, chunk, say, normal=True) -> _Setup:
     estimate = tuple(dict.fromkeys(estimate))
     bad = [e for e in estimate if e not in EFFECT_NAMES]
     if bad:
@@ -471,7 +580,7 @@ def _setup(recording, estimate, init, weights, chunk, say) -> _Setup:
     say(f"{data.n_frames} frames, {data.n_leds} LEDs: closed-form initialisation")
     if init is None:
         cft, bff, _ = pose_pairs(data, effects0, data.reference)
-        z, x = robot_world_hand_eye(cft, bff)
+        z, x = closed_form_start(cft, bff, data.nominal_flange_from_tool)
     else:
         z, x = _wxyz_xyz(init.camera_from_base), _wxyz_xyz(init.flange_from_tool)
     initial = {"camera_from_base": _pose_of(z), "flange_from_tool": _pose_of(x)}
@@ -507,8 +616,8 @@ def _setup(recording, estimate, init, weights, chunk, say) -> _Setup:
     names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
     has_column = np.concatenate([np.ones(q, bool), np.any(basis != 0, axis=0)])
     n_res = 3 * int(np.sum(w_user > 0)) + (0 if probe is None else 6 * probe.probed.shape[0])
-    normal0 = _normal_at_zero(bundle, len(names_theta))
-    h0 = np.asarray(normal0[0])
+    normal0 = _normal_at_zero(bundle, len(names_theta)) if normal else None
+    h0 = np.asarray(normal0[0]) if normal else np.zeros((0, 0))
     if not np.all(np.isfinite(h0)):
         raise UserError("the observations give non-finite normal equations at the start")
     return _Setup(

@@ -5,8 +5,10 @@ the scene. An LED is seen when it lies inside the measurement volume (a cone of
 half-angle `fov_half_angle` around z, between `near` and `far`) and the angle between
 its emission axis and the line of sight to the camera is below `max_emission_angle`
 (LEDs facing away are never seen). Noise is isotropic Gaussian with a standard
-deviation that grows toward the edge of visibility:
-``sigma = sigma0 · (1 + edge_gain · (theta / max_emission_angle)^4)``.
+deviation that grows toward the edge of visibility and with the distance (the image
+spot is smaller and dimmer further away):
+``sigma = sigma0 · (1 + edge_gain · (theta / max_emission_angle)^4) ·
+(distance / reference_distance)^distance_exponent``.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ class CameraModel(eqx.Module):
     near: float = 1.2  # [m]
     far: float = 6.0  # [m]
     dropout: float = 0.002  # probability that a visible LED is missed in a frame
+    reference_distance: float = 2.0  # [m] distance at which the noise is sigma0 head-on
+    distance_exponent: float = 2.0  # triangulation: depth noise grows as distance²
 
 
 def emission_angle(
@@ -46,6 +50,11 @@ def in_volume(camera: CameraModel, leds_camera: Float[Array, "*batch 3"]) -> Boo
     return (dist > camera.near) & (dist < camera.far) & (off_axis < camera.fov_half_angle)
 
 
-def noise_sigma(camera: CameraModel, theta: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
-    """Per-axis noise standard deviation [m] of an LED seen at emission angle `theta`."""
-    return camera.sigma0 * (1.0 + camera.edge_gain * (theta / camera.max_emission_angle) ** 4)
+def noise_sigma(
+    camera: CameraModel, theta: Float[Array, "*batch"], distance: Float[Array, "*batch"]
+) -> Float[Array, "*batch"]:
+    """Per-axis noise standard deviation [m] of an LED seen at emission angle `theta`
+    [rad] from `distance` [m] (camera frame origin to the LED)."""
+    angular = 1.0 + camera.edge_gain * (theta / camera.max_emission_angle) ** 4
+    radial = (distance / camera.reference_distance) ** camera.distance_exponent
+    return camera.sigma0 * angular * radial

@@ -1,6 +1,10 @@
 """Figures (PNG, matplotlib Agg) and the HTML report; the only place that imports matplotlib."""
 
-from ._discrepancy_figures import gap_figure as gap_figure, structure_figure as structure_figure
+from ._discrepancy_figures import (
+    gap_figure as gap_figure,
+    noise_figure as noise_figure,
+    structure_figure as structure_figure,
+)
 from ._figures import (
     deviation_figure as deviation_figure,
     path_3d_figure as path_3d_figure,

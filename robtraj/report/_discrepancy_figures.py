@@ -1,4 +1,5 @@
-"""Figures of the discrepancy workflow: the gap step by step, residual structure."""
+"""Figures of the discrepancy workflow: the gap step by step, residual structure, the
+noise model."""
 
 from __future__ import annotations
 
@@ -52,4 +53,42 @@ def structure_figure(path, before: dict, after: dict) -> Path:
         ax.grid(True, alpha=0.3)
     axes[0, 0].legend()
     fig.suptitle("Where the model and the measurement disagree")
+    return _save(fig, path)
+
+
+def noise_figure(path, noise) -> Path:
+    """The recording's noise model: per-axis σ [µm] against emission angle at the
+    distance knots, and against distance at three angles; each LED's level beside."""
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6), constrained_layout=True)
+    ka, kb = noise.angle_knots, noise.distance_knots
+    th = np.linspace(ka[0], ka[-1], 100)
+    for r in kb:
+        axes[0].plot(
+            np.degrees(th), noise.sigma_at(th, np.full_like(th, r)) * 1e6, label=f"{r:.2f} m"
+        )
+    axes[0].set_xlabel("emission angle [°]")
+    axes[0].set_title("σ against emission angle")
+    dist = np.linspace(kb[0] - 0.05, kb[-1] + 0.05, 50)
+    for a in np.unique(ka[[0, ka.size // 2, -1]]):
+        axes[1].plot(
+            dist, noise.sigma_at(np.full_like(dist, a), dist) * 1e6, label=f"{np.degrees(a):.0f}°"
+        )
+    axes[1].set_xlabel("distance from the camera [m]")
+    axes[1].set_title("σ against distance")
+    axes[2].bar(np.arange(noise.led_ids.size), noise.led_level, color="C0")
+    axes[2].axhline(1.0, color="k", lw=0.8)
+    axes[2].set_xticks(
+        np.arange(noise.led_ids.size), [str(int(i)) for i in noise.led_ids], fontsize=7
+    )
+    axes[2].set_xlabel("LED")
+    axes[2].set_ylabel("variance level")
+    axes[2].set_title("each LED's level")
+    for ax in axes[:2]:
+        ax.set_ylabel("noise σ per axis [µm]")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(
+        f"Noise of the recording (pair second differences, n = {noise.n_samples}, "
+        f"level ±{100 * noise.level_rel_se:.1f} %)"
+    )
     return _save(fig, path)

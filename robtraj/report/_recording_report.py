@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import UserError
+from ._discrepancy_figures import noise_figure
 from ._figures import (
     deviation_figure,
     path_3d_figure,
@@ -250,6 +251,44 @@ def static_pose_errors(rec, calibration, base_poses) -> tuple[np.ndarray, np.nda
     q_bf = (r_bt * r_ft.inv()).as_quat(scalar_first=True)
     p_bf[~ok], q_bf[~ok] = np.nan, np.nan
     return absolute_pose_error(p_bf, q_bf, cmd[:, 4:], cmd[:, :4])
+
+
+def _noise_section(out: Path, rec) -> Section:
+    """The recording's noise model (`robtraj.estimate.observation_noise`): figure and the
+    σ table at its knots; left out with the reason when it cannot be estimated."""
+    from ..estimate import observation_noise
+
+    title = "Noise of the recording"
+    if rec.tool is None:
+        return _left_out(title, "no tool constellation: the LEDs' rigid pairs are unknown.")
+    try:
+        model, _ = observation_noise(rec)
+    except UserError as e:
+        return _left_out(title, f"{e}.")
+    sigma = np.sqrt(model.variance) * 1e6
+    head = ["emission angle [°]"] + [f"σ at {r:.2f} m [µm]" for r in model.distance_knots]
+    rows = [
+        [f"{np.degrees(a):.0f}", *(float(x) for x in row)]
+        for a, row in zip(model.angle_knots, sigma)
+    ]
+    return Section(
+        title,
+        "Per-axis LED noise estimated from the recording alone: the distance between two "
+        "LEDs of the rigid tool does not change as it moves, so its second difference over "
+        "three frames is noise. σ is modelled as a function of the LED's emission angle, "
+        "its distance from the camera and the LED's own level; every calibration weight "
+        "and the discrepancy workflow's gap and floor use it. Level of the model ±"
+        f"{100 * model.level_rel_se:.1f} % (jackknife over time blocks).",
+        figures=[
+            Figure(
+                noise_figure(out / "noise_model.png", model),
+                "Noise σ per axis against the emission angle (at the distance knots) and "
+                "against the distance (at three angles); right: each LED's variance level "
+                "(1 = the recording's mean).",
+            )
+        ],
+        tables=[Table("Noise model", head, rows, "σ per axis at the model's knots.")],
+    )
 
 
 def _left_out(title: str, reason: str) -> Section:
@@ -541,6 +580,7 @@ def recording_report(
             ],
         )
     )
+    sections.append(_noise_section(out, rec))
     if est is not None:
         sections.append(
             Section(

@@ -10,7 +10,7 @@ from ._scenarios import (
     iso_cube_poses,
     iso_cube_truth,
 )
-from ._simulate import simulate
+from ._simulate import joint_dwells, simulate
 
 __all__ = [
     "DEFAULT_DURATION",
@@ -21,6 +21,7 @@ __all__ = [
     "iso_cube_cycles",
     "iso_cube_poses",
     "iso_cube_truth",
+    "joint_dwells",
     "simulate",
     "trapezoid_duration",
     "trapezoid_progress",

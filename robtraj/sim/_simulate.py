@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +16,7 @@ from ..model import (
     CameraModel,
     Effects,
     emission_angle,
+    flange_poses,
     hemispherical_tool,
     in_volume,
     interpolate_joints,
@@ -24,7 +26,7 @@ from ..model import (
     predict_tool_poses,
 )
 from ..recording import Pose, Program, Recording, RobotLog, Truth
-from ._motion import joint_log
+from ._motion import Move, joint_log
 from ._scenarios import DEFAULT_DURATION, scenario_moves
 
 ROBOT_RATE = 250.0  # [Hz] joint log rate of the controller
@@ -70,7 +72,13 @@ def _observe(
     leds = led_positions(tool, effects, p, n)
     normals = jax.vmap(lambda T: jax.vmap(T.rotation().apply)(n))(tool)
     theta = emission_angle(leds, normals)
-    return tool.wxyz_xyz, leds, theta, in_volume(camera, leds), noise_sigma(camera, theta)
+    return (
+        tool.wxyz_xyz,
+        leds,
+        theta,
+        in_volume(camera, leds),
+        noise_sigma(camera, theta, jnp.linalg.norm(leds, axis=-1)),
+    )
 
 
 def simulate(
@@ -83,6 +91,7 @@ def simulate(
     camera: CameraModel | None = None,
     robot: str = "abb_irb2400_16",
     truth: bool = True,
+    moves: Sequence[Move] | None = None,
 ) -> Recording:
     """Simulate a tracker recording of `scenario` (seeded, reproducible).
 
@@ -91,7 +100,8 @@ def simulate(
     true camera placement, flange←tool and constellation differ from nominal by a
     seeded perturbation (a few cm / degrees for the camera, ~0.5 mm / 0.3° for the tool
     mount, ~50 µm per LED); the recording carries the nominal tool and, unless
-    `truth=False`, the truth in `/truth`.
+    `truth=False`, the truth in `/truth`. `moves`: a program of the caller's (e.g. from
+    `joint_dwells`) instead of the scenario's; the truth is that of the same `seed`.
     """
     duration = DEFAULT_DURATION.get(scenario, 30.0) if duration is None else float(duration)
     if not (duration > 0 and np.isfinite(duration)):
@@ -121,7 +131,7 @@ def simulate(
     constellation = tool.constellation + rng.normal(scale=50e-6, size=tool.constellation.shape)
 
     # robot: program → joint log on the robot clock
-    moves = scenario_moves(scenario, duration, rng)
+    moves = scenario_moves(scenario, duration, rng) if moves is None else list(moves)
     n = int(round(duration * rate))
     t_track = np.arange(n) / rate
     tau = float(effects.time_offset)
@@ -197,3 +207,19 @@ def simulate(
             "rate_hz": float(rate),
         },
     )
+
+
+def joint_dwells(
+    joints: np.ndarray, *, dwell: float = 1.0, robot: str = "abb_irb2400_16"
+) -> list[Move]:
+    """Joint moves to the configurations `joints` `(n, joints)` [rad], each followed by a
+    `dwell` [s]: the TCP poses (nominal kinematics and tool mount) the simulator's
+    program takes (e.g. the poses `robtraj calibrate` suggests measuring next)."""
+    model = BUILTIN_ROBOTS[robot]()
+    fft = hemispherical_tool().flange_from_tool
+    tcp = jaxlie.SE3(jnp.concatenate([jnp.asarray(fft.quaternion_wxyz), jnp.asarray(fft.position)]))
+    q = jnp.asarray(np.atleast_2d(joints), jnp.float64)
+    fl = flange_poses(model, Effects.zeros(model.n_joints), q, jnp.zeros_like(q))
+    pose = jax.vmap(lambda f: (jaxlie.SE3(f) @ tcp).wxyz_xyz)(fl.wxyz_xyz)
+    pose = np.asarray(pose)
+    return [Move(p[4:], p[:4], "joint", 0.0, float(dwell)) for p in pose]

@@ -85,7 +85,9 @@ def _crb_position_sigma(rec):
     nrm = np.einsum("fij,mj->fmi", r, rec.tool.normals)
     to_cam = -leds / np.linalg.norm(leds, axis=-1, keepdims=True)
     theta = np.arctan2(np.linalg.norm(np.cross(to_cam, nrm), axis=-1), np.sum(to_cam * nrm, -1))
-    sig = np.asarray(noise_sigma(cam, jnp.asarray(theta)))
+    sig = np.asarray(
+        noise_sigma(cam, jnp.asarray(theta), jnp.asarray(np.linalg.norm(leds, axis=-1)))
+    )
     seen = rec.visible
     w = np.where(seen, 1 / sig**2, 0.0)
     # J_k = [I, -[R p_k]x]: y_k = t + exp(ω)R p_k

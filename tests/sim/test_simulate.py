@@ -12,6 +12,7 @@ from robtraj.model import (
     interpolate_joints,
     led_positions,
     motion_direction,
+    noise_sigma,
     predict_tool_poses,
     robot_from_log,
 )
@@ -88,16 +89,29 @@ def test_positions_equal_model_applied_to_robot_log(noiseless):
 
 
 def test_noise_matches_the_camera_model():
-    rec = simulate("paper", seed=5, duration=4.0, rate=500.0)
-    clean = simulate("paper", seed=5, duration=4.0, rate=500.0, camera=NOISELESS)
-    both = rec.visible & clean.visible & (rec.status == 0)
+    """The noise normalised by the camera model's σ(emission angle, distance) is white
+    with unit variance, in every angle and distance tercile."""
+    rec = simulate("calibration", seed=5, duration=24.0, rate=100.0)
+    clean = simulate("calibration", seed=5, duration=24.0, rate=100.0, camera=NOISELESS)
+    both = rec.visible & clean.visible
     resid = (rec.positions - clean.positions)[both]
-    # per-axis σ between σ0 and σ0·(1 + edge_gain·(58/65)^4) for status-0 LEDs
+    pose = rec.truth.tool_pose
+    rot = np.asarray(jaxlie.SO3(jnp.asarray(pose.quaternion_wxyz)).as_matrix())
+    nrm = np.einsum("fij,mj->fmi", rot, rec.tool.normals)[both]
+    leds = clean.positions[both]
+    to_cam = -leds / np.linalg.norm(leds, axis=-1, keepdims=True)
+    theta = np.arctan2(np.linalg.norm(np.cross(to_cam, nrm), axis=-1), np.sum(to_cam * nrm, -1))
+    dist = np.linalg.norm(leds, axis=-1)
     cam = CameraModel()
-    lo, hi = cam.sigma0, cam.sigma0 * (1 + cam.edge_gain * (58 / 65) ** 4)
-    s = resid.std()
-    assert lo * 0.95 < s < hi * 1.05
-    assert abs(resid.mean()) < 5 * s / np.sqrt(resid.size)
+    u = resid / np.asarray(noise_sigma(cam, jnp.asarray(theta), jnp.asarray(dist)))[:, None]
+    for x in (theta, dist):
+        cuts = np.quantile(x, [1 / 3, 2 / 3])
+        for part in (x < cuts[0], (x >= cuts[0]) & (x < cuts[1]), x >= cuts[1]):
+            var = np.mean(u[part] ** 2)
+            # relative standard error of a Gaussian variance: sqrt(2 / n)
+            assert abs(var - 1) < 4 * np.sqrt(2 / u[part].size), var
+    assert np.ptp(dist) > 0.2 and np.ptp(theta) > 0.5  # both terms are exercised
+    assert abs(resid.mean()) < 5 * resid.std() / np.sqrt(resid.size)
 
 
 def test_seeded_and_reproducible():

@@ -1,0 +1,219 @@
+"""What to measure next: the static robot poses that would best determine what a
+calibration leaves weak or undetermined (greedy D-optimal design on the engine's normal
+matrix).
+
+Candidates are the recording's own joint configurations with the wrist (last three
+joints) turned by ±20° and ±40°, one joint at a time and in pairs: poses near ones the
+robot reached in this setup, reoriented — what separates flange←tool from camera←base.
+A candidate counts only where at least four LEDs the calibration determined would be
+seen: emission angle and distance inside what the recording saw. Each would add the information of one static
+dwell (`DWELL_S` at the recording's frame rate), with the recording's noise model as
+weights. Greedily, the candidate that raises ``log det`` of the column-scaled free
+normal matrix (plus a small ridge, so that null directions count) the most is taken,
+then the next given it, and so on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model import emission_angle, flange_poses
+from ._calib_problem import BundleData, Frames, chunk_terms, h_in_theta, tool_poses
+from ._uncertainty import column_scale, covariance, identifiability
+
+#: [s] of static dwell each suggested pose stands for
+DWELL_S = 1.0
+#: logged joint configurations the candidates start from (evenly spread)
+BASE_CONFIGURATIONS = 40
+#: wrist turns [rad] of the candidates
+WRIST_TURNS = np.deg2rad([-40.0, -20.0, 20.0, 40.0])
+#: ridge of the D-optimal criterion, relative to the largest eigenvalue
+RIDGE = 1e-9
+MIN_LEDS = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class NextPoses:
+    """Suggested static poses, best first: `joints` `(n, joints)` [rad], `leds_seen`
+    `(n,)` the LEDs each would show; `sigma_before` the σ of the `watched` parameters now
+    and `sigma_after[k]` after adding the first k + 1 poses (inf: not determined)."""
+
+    joints: np.ndarray
+    leds_seen: np.ndarray
+    watched: tuple[str, ...]
+    sigma_before: dict[str, float]
+    sigma_after: list[dict[str, float]]
+    dwell_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        def clean(d):
+            return {k: (v if np.isfinite(v) else None) for k, v in d.items()}
+
+        return {
+            "joints_rad": np.asarray(self.joints).tolist(),
+            "leds_seen": [int(x) for x in self.leds_seen],
+            "dwell_s": self.dwell_s,
+            "sigma_before": clean(self.sigma_before),
+            "sigma_after": [clean(d) for d in self.sigma_after],
+        }
+
+
+def candidate_joints(joints: np.ndarray, n_base: int = BASE_CONFIGURATIONS) -> np.ndarray:
+    """`(K, joints)` candidate configurations [rad] from logged ones `joints`."""
+    q = np.asarray(joints, float)
+    base = q[np.unique(np.linspace(0, q.shape[0] - 1, n_base).round().astype(int))]
+    wrist = list(range(max(0, q.shape[1] - 3), q.shape[1]))
+    steps = []
+    for k in (1, 2):
+        for axes in itertools.combinations(wrist, k):
+            for turns in itertools.product(WRIST_TURNS, repeat=k):
+                d = np.zeros(q.shape[1])
+                d[list(axes)] = turns
+                steps.append(d)
+    return (base[:, None, :] + np.array(steps)[None]).reshape(-1, q.shape[1])
+
+
+@eqx.filter_jit
+def _observe(bundle: BundleData, q: jax.Array):
+    """LED positions `(K, m, 3)` [m] and emission angles `(K, m)` at configurations `q`."""
+    m = bundle.problem.constellation.shape[0]
+    problem, frames = _static_problem(bundle, q, jnp.zeros((q.shape[0], m), q.dtype))
+    g = jnp.zeros(_q_count(bundle), q.dtype)
+    tool, eff = tool_poses(g, problem, frames)
+    rot = jax.vmap(lambda t: t.rotation().as_matrix())(tool)
+    p = problem.constellation
+    leds = jnp.einsum("cij,mj->cmi", rot, p) + tool.translation()[:, None, :]
+    nrm = jnp.einsum("cij,mj->cmi", rot, problem.normals)
+    return leds, emission_angle(leds, nrm)
+
+
+def _q_count(bundle: BundleData) -> int:
+    eff = bundle.problem.effects
+    return 12 + sum(int(np.size(getattr(eff, n))) for n in bundle.problem.free)
+
+
+def _static_problem(bundle: BundleData, q: jax.Array, sqrt_w: jax.Array):
+    """The problem at its current values with `q` as the joint log (one static frame
+    per configuration, no clock offset, no temperature change) and those frames."""
+    problem = bundle.problem
+    k = q.shape[0]
+    eff = eqx.tree_at(lambda e: e.time_offset, problem.effects, jnp.zeros(()))
+    problem = eqx.tree_at(
+        lambda pr: (pr.effects, pr.log_time, pr.joints),
+        problem,
+        (eff, jnp.arange(k, dtype=q.dtype), q),
+    )
+    fl = flange_poses(problem.robot, eff, q, jnp.zeros_like(q)).wxyz_xyz
+    m = problem.constellation.shape[0]
+    frames = Frames(
+        time=jnp.arange(k, dtype=q.dtype),
+        direction=jnp.zeros_like(q),
+        drift=jnp.zeros(k, q.dtype),
+        measured=jnp.zeros((k, m, 3), q.dtype),
+        sqrt_weight=sqrt_w,
+        base_from_flange=fl,
+    )
+    return problem, frames
+
+
+@eqx.filter_jit
+def _information(bundle: BundleData, q: jax.Array, sqrt_w: jax.Array):
+    """Normal matrix `(K, P, P)` in θ of one frame at each configuration."""
+    problem, frames = _static_problem(bundle, q, sqrt_w)
+    g = jnp.zeros(_q_count(bundle), q.dtype)
+    one = jax.tree_util.tree_map(lambda a: a[:, None], frames)  # K chunks of one frame
+
+    def h_of(f):
+        hgg, hgp, hpp, *_ = chunk_terms(g, problem.constellation, problem, f)
+        return h_in_theta(hgg, hgp, hpp, bundle.basis)
+
+    return jax.vmap(h_of)(one)
+
+
+def next_poses(
+    bundle: BundleData,
+    h: np.ndarray,
+    free: np.ndarray,
+    s2: float,
+    names: list[str],
+    watched: list[str],
+    variance_at,
+    joints: np.ndarray,
+    frame_rate: float,
+    seen_angle: float,
+    seen_distance: tuple[float, float],
+    known: np.ndarray,
+    n: int = 6,
+) -> NextPoses | None:
+    """Greedy D-optimal choice of `n` static poses (module docstring).
+
+    `bundle` at the optimum, `h` its normal matrix in θ and `free` the free mask, `s2`
+    the variance factor of the covariance, `names` θ's names and `watched` the ones to
+    report; `variance_at(theta, distance, led)` the per-axis noise variance [m²];
+    `joints` the logged joint configurations; `seen_angle` [rad] and `seen_distance` [m]
+    what the recording saw; `known` `(m,)` the LEDs whose position the calibration
+    determined (an LED it never saw would bring parameters of its own, so it is not
+    counted). None when no candidate would show `MIN_LEDS` LEDs.
+    """
+    q = jnp.asarray(candidate_joints(joints))
+    leds, theta = (np.asarray(a) for a in _observe(bundle, q))
+    dist = np.linalg.norm(leds, axis=-1)
+    lo, hi = seen_distance
+    seen = (theta <= seen_angle) & (dist >= lo) & (dist <= hi) & np.asarray(known, bool)
+    ok = seen.sum(1) >= MIN_LEDS
+    if not ok.any():
+        return None
+    q, seen, theta, dist = q[ok], seen[ok], theta[ok], dist[ok]
+    led = np.broadcast_to(np.arange(seen.shape[1]), seen.shape)
+    var = variance_at(np.where(seen, theta, 0.0), np.where(seen, dist, lo), led)
+    frames = max(1.0, DWELL_S * frame_rate)
+    sqrt_w = np.where(seen, np.sqrt(frames / var), 0.0)
+    info = np.array(_information(bundle, q, jnp.asarray(sqrt_w)))
+    tau = [i for i, name in enumerate(names) if name == "time_offset"]
+    info[:, tau, :] = 0.0  # a static pose says nothing of the clock offset
+    info[:, :, tau] = 0.0
+
+    idx = np.flatnonzero(free)
+    d = column_scale(h)[idx]
+    scale = np.outer(d, d)
+    a = h[np.ix_(idx, idx)] / scale
+    ridge = RIDGE * float(np.linalg.eigvalsh(a)[-1]) * np.eye(idx.size)
+    cand = info[:, idx][:, :, idx] / scale
+    chosen: list[int] = []
+    total = a.copy()
+    for _ in range(min(n, cand.shape[0])):
+        _, logdet = np.linalg.slogdet(total[None] + cand + ridge[None])
+        logdet[chosen] = -np.inf
+        best = int(np.argmax(logdet))
+        chosen.append(best)
+        total = total + cand[best]
+
+    def sigmas(hh):
+        _, ident = identifiability(hh, names, free, np.zeros(len(names), bool))
+        cov, _ = covariance(hh, free, s2)
+        sig = np.sqrt(np.clip(np.diag(cov), 0, None))
+        out = {w: float(sig[names.index(w)]) for w in watched}
+        for w in ident["undetermined"]:
+            if w in out:
+                out[w] = float("inf")
+        return out
+
+    after, hh = [], np.asarray(h, float)
+    for c in chosen:
+        hh = hh + info[c]
+        after.append(sigmas(hh))
+    return NextPoses(
+        joints=np.asarray(q)[chosen],
+        leds_seen=seen[chosen].sum(1),
+        watched=tuple(watched),
+        sigma_before=sigmas(np.asarray(h, float)),
+        sigma_after=after,
+        dwell_s=DWELL_S,
+    )
