@@ -3,4 +3,9 @@
 `acquisition` may import `robtraj.recording`; `robtraj` imports `acquisition` only in its CLI.
 """
 
-from .events import EndOfStream as EndOfStream, LedFrame as LedFrame, StatusMessage as StatusMessage
+from .events import (
+    EndOfStream as EndOfStream,
+    LedFrame as LedFrame,
+    LedFrames as LedFrames,
+    StatusMessage as StatusMessage,
+)

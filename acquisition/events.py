@@ -3,6 +3,10 @@
 A decoder is an object with ``feed(chunk: bytes) -> list[LedFrame | StatusMessage |
 EndOfStream]`` (any split of the byte stream gives the same events) and a ``counters``
 dict of error counts by kind; the recorder is written against this interface only.
+
+A decoder may also yield `LedFrames`: consecutive LED frames as arrays, which the recorder
+takes as a whole (robtraj's own decoder does when built with ``blocks=True``); it stands
+for the `LedFrame`s its `frames()` gives, in order, with nothing between them.
 """
 
 from __future__ import annotations
@@ -27,6 +31,32 @@ class LedFrame:
     led_ids: np.ndarray
     positions: np.ndarray
     status: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LedFrames:
+    """K consecutive tracker frames of n LED records each, as arrays.
+
+    `frame_counter` `(K,)` int64 as sent; `device_time` `(K,)` float64 [s]; `led_ids`
+    `(K, n)` int64; `positions` `(K, n, 3)` float64 [m], NaN for an LED reported missing;
+    `status` `(K, n)` uint8. Row j is the `LedFrame` ``frames()`` yields j-th.
+    """
+
+    frame_counter: np.ndarray
+    device_time: np.ndarray
+    led_ids: np.ndarray
+    positions: np.ndarray
+    status: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.frame_counter.shape[0])
+
+    def frames(self):
+        """The frames one by one, as a per-frame decoder yields them."""
+        for j, (counter, t) in enumerate(
+            zip(self.frame_counter.tolist(), self.device_time.tolist(), strict=True)
+        ):
+            yield LedFrame(counter, t, self.led_ids[j], self.positions[j], self.status[j])
 
 
 @dataclasses.dataclass(frozen=True)

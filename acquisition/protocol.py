@@ -17,11 +17,12 @@ only the frames whose bytes were damaged.
 from __future__ import annotations
 
 import binascii
+import functools
 import struct
 
 import numpy as np
 
-from .events import EndOfStream, LedFrame, StatusMessage
+from .events import EndOfStream, LedFrame, LedFrames, StatusMessage
 
 SYNC = b"\xa5\xc4"
 HEADER_SIZE = 6
@@ -127,6 +128,83 @@ def encode_event(event: LedFrame | StatusMessage | EndOfStream) -> bytes:
 
 ERROR_COUNTERS = ("bad_header_crc", "bad_body_crc", "bad_length", "unknown_type", "truncated")
 
+# ----------------------------------------------------------------------------- batch checks
+
+# the CRC-16/CCITT-FALSE register after one byte b from register 0 (the byte-wise table)
+_CRC_BYTE = np.array([binascii.crc_hqx(bytes([b]), 0) for b in range(256)], np.uint16)
+_VECTOR_CRC_MIN = 4  # runs shorter than this are checked message by message
+_MAX_RUN = 4096  # frames checked in one vectorised pass (bounds the temporaries)
+
+
+@functools.lru_cache(maxsize=4)
+def _crc_tables(length: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Tables that give the CRC-16/CCITT-FALSE of many `length`-byte messages at once.
+
+    The CRC is affine in the message bits: ``crc16(m) = base ^ XOR_j T[j, m[j]]`` with
+    ``base = crc16(zeros(length))`` and ``T[j, b]`` the CRC from register 0 of the byte b
+    followed by ``length - 1 - j`` zero bytes. Returns T flattened, the row offsets
+    ``256 j`` and base."""
+    table = np.empty((length, 256), np.uint16)
+    row = _CRC_BYTE
+    table[length - 1] = row
+    for j in range(length - 2, -1, -1):  # one more zero byte after b: shift the register
+        row = (row << 8) ^ _CRC_BYTE[row >> 8]
+        table[j] = row
+    offsets = np.arange(length, dtype=np.intp) * 256
+    return table.ravel(), offsets, binascii.crc_hqx(bytes(length), 0xFFFF)
+
+
+def crc16_rows(messages: np.ndarray) -> np.ndarray:
+    """`crc16` of each row of a `(K, L)` uint8 array (any strides), as `(K,)` uint16."""
+    table, offsets, base = _crc_tables(messages.shape[1])
+    return np.bitwise_xor.reduce(table[messages + offsets], axis=1) ^ np.uint16(base)
+
+
+@functools.cache
+def _frame_dtype(n: int) -> np.dtype:
+    """A whole framed LED frame with `n` LED records, as one structured element."""
+    return np.dtype(
+        [
+            ("head", "V6"),
+            ("type", "u1"),
+            ("counter", "<u4"),
+            ("time", "<u8"),
+            ("n", "u1"),
+            ("leds", LED_DTYPE, (n,)),
+            ("crc", "<u2"),
+        ]
+    )
+
+
+def _led_run(raw: np.ndarray, i: int, length: int, end: int) -> int:
+    """How many LED frames, the first at `i`, follow one another in `raw[:end]` and pass
+    every check: the first one's header was checked (CRC, length, and the LED count n
+    fits the length); each following one repeats that header's bytes (sync, length,
+    header CRC), its type byte and its n; each body matches its CRC. 0: the first body
+    does not."""
+    stride = length + HEADER_SIZE + CRC_SIZE
+    count = min((end - i) // stride, _MAX_RUN)
+    rows = raw[i : i + count * stride].reshape(count, stride)
+    if count > 1:
+        fixed = HEADER_SIZE + 1  # sync, length, header CRC, type
+        n_at = HEADER_SIZE + LED_FRAME_FIXED - 1
+        same = np.all(rows[1:, :fixed] == rows[0, :fixed], axis=1)
+        same &= rows[1:, n_at] == rows[0, n_at]
+        if not same.all():
+            count = 1 + int(np.argmin(same))
+            rows = rows[:count]
+    bodies = rows[:, HEADER_SIZE : HEADER_SIZE + length]
+    if count >= _VECTOR_CRC_MIN:
+        got = crc16_rows(bodies)
+    else:
+        got = np.array([binascii.crc_hqx(b.tobytes(), 0xFFFF) for b in bodies], np.uint16)
+    sent = rows[:, -2] | (rows[:, -1].astype(np.uint16) << 8)
+    ok = got == sent
+    return count if ok.all() else int(np.argmin(ok))
+
+
+_RUN = object()  # placeholder in the event list for a run of LED frames
+
 
 class Decoder:
     """Incremental decoder for the robtraj stream; follows `acquisition.events`.
@@ -134,6 +212,14 @@ class Decoder:
     `feed(chunk)` returns the events completed by `chunk`; `finish()` declares the
     stream (or this connection) over: an incomplete frame left in the buffer counts as
     ``truncated`` and the bytes after its sync are still searched for frames.
+
+    `blocks`: yield consecutive LED frames (same LED count, no other message between
+    them) as one `LedFrames` instead of one `LedFrame` each: the same frames, without a
+    Python object per frame (what the recorder uses).
+
+    LED frames that follow one another with the same header are checked together: their
+    header bytes against the first one's, which was checked, and all their body CRCs in
+    one vectorised pass (`crc16_rows`). The checks are the same as message by message.
 
     `counters`:
 
@@ -150,7 +236,8 @@ class Decoder:
       the decoder had to search for the next sync; ``bytes_skipped``: their total length.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, blocks: bool = False) -> None:
+        self.blocks = blocks
         self._buf = bytearray()
         self._junk = False  # inside an undecodable stretch since the last good message
         self.counters: dict[str, int] = {
@@ -166,13 +253,11 @@ class Decoder:
             "bytes_skipped": 0,
         }
 
-    def feed(
-        self, chunk: bytes | bytearray | memoryview
-    ) -> list[LedFrame | StatusMessage | EndOfStream]:
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list:
         self._buf += chunk
         return self._scan(final=False)
 
-    def finish(self) -> list[LedFrame | StatusMessage | EndOfStream]:
+    def finish(self) -> list:
         events = self._scan(final=True)
         if self._buf:
             self._skip(len(self._buf))
@@ -192,14 +277,15 @@ class Decoder:
             self.counters["resyncs"] += 1
             self._junk = False
 
-    def _scan(self, final: bool) -> list[LedFrame | StatusMessage | EndOfStream]:
+    def _scan(self, final: bool) -> list:
         buf = self._buf
         n = len(buf)
         c = self.counters
         crc = binascii.crc_hqx  # CRC-16/CCITT-FALSE with init 0xFFFF, see crc16()
         mv = memoryview(buf)
+        raw = np.frombuffer(buf, np.uint8)  # both released before the buffer is resized
         out: list = []
-        leds: list[tuple[int, int, int, int, int]] = []  # (slot, counter, time_us, n, offset)
+        runs: list[tuple[int, int, int, int]] = []  # (slot in out, offset, frames, LEDs)
         pos = 0
         try:
             while True:
@@ -238,20 +324,31 @@ class Decoder:
                         pos = i + 1
                         continue
                     break
+                kind = buf[start]
+                if (
+                    kind == TYPE_LED_FRAME
+                    and length >= LED_FRAME_FIXED
+                    and length == LED_FRAME_FIXED + LED_RECORD * buf[start + LED_FRAME_FIXED - 1]
+                ):
+                    count = _led_run(raw, i, length, n)
+                    if not count:
+                        c["bad_body_crc"] += 1
+                        self._skip(1)
+                        pos = i + 1
+                        continue
+                    self._end_junk()
+                    runs.append((len(out), i, count, buf[start + LED_FRAME_FIXED - 1]))
+                    out.append(_RUN)
+                    pos = i + count * (end - i)
+                    continue
                 if crc(mv[start : end - CRC_SIZE], 0xFFFF) != _U16.unpack_from(buf, end - 2)[0]:
                     c["bad_body_crc"] += 1
                     self._skip(1)
                     pos = i + 1
                     continue
-                kind = buf[start]
-                event = None
-                if kind == TYPE_LED_FRAME and length >= LED_FRAME_FIXED:
-                    _, counter, time_us, k = _LED_FIXED.unpack_from(buf, start)
-                    if length == LED_FRAME_FIXED + k * LED_RECORD:
-                        leds.append((len(out), counter, time_us, k, start + LED_FRAME_FIXED))
-                        event = True  # filled in below, in one vectorised pass
-                    else:
-                        c["bad_length"] += 1
+                if kind == TYPE_LED_FRAME:  # too short for the fixed fields, or n not fitting
+                    c["bad_length"] += 1
+                    event = None
                 else:
                     event = self._parse(bytes(buf[start : end - CRC_SIZE]))
                 if event is None:
@@ -261,43 +358,41 @@ class Decoder:
                 self._end_junk()
                 out.append(event)
                 pos = end
+            if runs:
+                out = self._fill_led_frames(out, runs, raw)
         finally:
-            mv.release()  # the buffer can be resized again
-        if leds:
-            self._fill_led_frames(out, leds)
+            mv.release()
+            del raw  # the buffer can be resized again
         if pos:
             del buf[:pos]
         return out
 
-    def _fill_led_frames(self, out: list, leds: list[tuple[int, int, int, int, int]]) -> None:
-        """Turn the LED frames found in the buffer into `LedFrame`s, one numpy pass per size."""
-        self.counters["led_frames"] += len(leds)
-        raw = np.frombuffer(self._buf, np.uint8)
-        try:
-            sizes = {k for _, _, _, k, _ in leds}
-            for size in sizes:
-                group = leds if len(sizes) == 1 else [m for m in leds if m[3] == size]
-                if size:
-                    offsets = np.fromiter((m[4] for m in group), np.int64, len(group))
-                    take = offsets[:, None] + np.arange(size * LED_RECORD)
-                    recs = raw[take].view(LED_DTYPE)
-                else:
-                    recs = np.zeros((len(group), 0), LED_DTYPE)
-                status = np.ascontiguousarray(recs["status"])
-                positions = recs["xyz"].astype(np.float64) / 1000.0
-                positions[status == STATUS_MISSING] = np.nan
-                ids = recs["id"].astype(np.int64)
-                for j, (slot, counter, time_us, _, _) in enumerate(group):
-                    out[slot] = LedFrame(counter, time_us / 1e6, ids[j], positions[j], status[j])
-        finally:
-            del raw
+    def _fill_led_frames(self, out: list, runs: list, raw: np.ndarray) -> list:
+        """Replace the runs' placeholders by `LedFrames` blocks (adjacent runs of the same
+        LED count merged) or, without `blocks`, by their `LedFrame`s."""
+        self.counters["led_frames"] += sum(r[2] for r in runs)
+        groups: list[list[tuple[int, int, int, int]]] = []
+        for run in runs:
+            last = groups[-1][-1] if groups else None
+            if self.blocks and last is not None and last[0] + 1 == run[0] and last[3] == run[3]:
+                groups[-1].append(run)
+            else:
+                groups.append([run])
+        events: dict[int, list] = {}
+        for group in groups:
+            block = _led_frames(raw, group)
+            events[group[0][0]] = [block] if self.blocks else list(block.frames())
+        result: list = []
+        for slot, ev in enumerate(out):
+            if ev is _RUN:
+                result += events.get(slot, ())
+            else:
+                result.append(ev)
+        return result
 
     def _parse(self, body: bytes) -> StatusMessage | EndOfStream | None:
         c = self.counters
         kind = body[0]
-        if kind == TYPE_LED_FRAME:
-            c["bad_length"] += 1  # too short to hold the fixed LED-frame fields
-            return None
         if kind == TYPE_STATUS:
             if len(body) != STATUS_BODY:
                 c["bad_length"] += 1
@@ -313,3 +408,22 @@ class Decoder:
             return EndOfStream()
         c["unknown_type"] += 1
         return None
+
+
+def _led_frames(raw: np.ndarray, runs: list[tuple[int, int, int, int]]) -> LedFrames:
+    """The checked LED frames of `runs` (offset, frames, n LEDs each) as arrays (copies)."""
+    dtype = _frame_dtype(runs[0][3])
+    parts = [raw[off : off + count * dtype.itemsize].view(dtype) for _, off, count, _ in runs]
+    recs = parts[0] if len(parts) == 1 else np.concatenate(parts)
+    leds = recs["leds"]
+    status = leds["status"].copy()
+    positions = leds["xyz"].astype(np.float64)
+    positions /= 1000.0
+    positions[status == STATUS_MISSING] = np.nan
+    return LedFrames(
+        frame_counter=recs["counter"].astype(np.int64),
+        device_time=recs["time"] / 1e6,
+        led_ids=leds["id"].astype(np.int64),
+        positions=positions,
+        status=status,
+    )

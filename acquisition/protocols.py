@@ -2,7 +2,8 @@
 
 A decoder follows the interface of `acquisition.events`: ``feed(bytes) -> list[event]``
 and a ``counters`` dict; it may also have ``finish()`` (the connection ended: flush an
-incomplete message). ``"robtraj"`` is our own protocol (PROTOCOL.md); ``"natnet"`` is
+incomplete message) and a ``blocks`` attribute, which the recorder sets to True to get
+consecutive frames as `LedFrames` arrays instead of one `LedFrame` each. ``"robtraj"`` is our own protocol (PROTOCOL.md); ``"natnet"`` is
 OptiTrack NatNet, imported lazily from `acquisition.natnet`.
 """
 

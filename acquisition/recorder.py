@@ -27,6 +27,7 @@ Decisions (see also PROTOCOL.md):
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import os
 import queue
@@ -44,7 +45,7 @@ import numpy as np
 from robtraj import UserError
 from robtraj.recording import RecordingAppender
 
-from .events import EndOfStream, LedFrame, StatusMessage
+from .events import EndOfStream, LedFrame, LedFrames, StatusMessage
 from .protocols import make_decoder
 
 _WRAP = 1 << 32
@@ -95,8 +96,23 @@ def _quiet_stderr_fd():
         os.close(devnull)
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Accepted:
+    """A decoder block taken whole: its frame indices and the temperature of its frames."""
+
+    index: np.ndarray
+    frames: LedFrames
+    temperature: float
+
+
 class FrameWriter:
-    """Turns decoded events into rows of a schema-1 recording at `path`."""
+    """Turns decoded events into rows of a schema-1 recording at `path`.
+
+    `frame` takes one `LedFrame`, `frames` a `LedFrames` block: a block whose counters
+    all step forward and whose times all increase is taken as a whole (counted, unwrapped
+    and later packed with array operations); any other block, and every block before the
+    LED set is fixed, goes through `frame` one frame at a time, so both give the same
+    rows and counters."""
 
     def __init__(
         self,
@@ -123,14 +139,16 @@ class FrameWriter:
         self.appender: Any = None
         self.led_ids: np.ndarray | None = None
         self._col_of: dict[int, int] = {}
-        self._pending: list[tuple[int, float, LedFrame, float]] = []
+        # (index, time, frame, temperature) per frame, or a block taken whole
+        self._pending: list[tuple[int, float, LedFrame, float] | _Accepted] = []
+        self._n_pending = 0
         self._temperature = float("nan")
         self._last_raw: int | None = None
         self._index = 0
         self._first_time: float | None = None
         self._last_time = -np.inf
         self.unknown_led_ids: set[int] = set()
-        self._last_frame: LedFrame | None = None
+        self._last_positions: np.ndarray | None = None  # of the latest frame
         self.counters = {
             "frames": 0,
             "written": 0,
@@ -143,13 +161,13 @@ class FrameWriter:
     @property
     def leds_seen(self) -> int:
         """LEDs seen (finite position) in the latest frame."""
-        fr = self._last_frame
-        return 0 if fr is None else int(np.count_nonzero(np.isfinite(fr.positions[:, 0])))
+        p = self._last_positions
+        return 0 if p is None else int(np.count_nonzero(np.isfinite(p[:, 0])))
 
     @property
     def pending(self) -> int:
         """Frames received but not yet appended to the file."""
-        return len(self._pending)
+        return self._n_pending
 
     @property
     def n_leds(self) -> int | None:
@@ -179,10 +197,43 @@ class FrameWriter:
         if self._first_time is None:
             self._first_time = t
         self._pending.append((index, t, fr, self._temperature))
+        self._n_pending += 1
         c["frames"] += 1
-        self._last_frame = fr
+        self._last_positions = fr.positions
         if self.appender is None and t - self._first_time >= self.led_set_seconds:
             self._open()
+
+    def frames(self, block: LedFrames) -> None:
+        """Take a block of consecutive frames: as a whole when its counters all step
+        forward (by 1 .. 2**31 - 1) and its times all increase, else frame by frame."""
+        k = len(block)
+        if k == 0:
+            return
+        if self.appender is not None and self._last_raw is not None:
+            raw = block.frame_counter % _WRAP
+            t = block.device_time
+            step = np.empty(k, np.int64)
+            step[0] = (int(raw[0]) - self._last_raw) % _WRAP
+            np.subtract(raw[1:], raw[:-1], out=step[1:])
+            step[1:] %= _WRAP
+            if (
+                ((step > 0) & (step < _HALF)).all()
+                and float(t[0]) > self._last_time
+                and (t[1:] > t[:-1]).all()
+            ):
+                index = np.cumsum(step, dtype=np.uint64)
+                index += np.uint64(self._index)
+                last = int(index[-1])
+                self.counters["lost"] += last - self._index - k
+                self._last_raw, self._index = int(raw[-1]), last
+                self._last_time = float(t[-1])
+                self._pending.append(_Accepted(index, block, self._temperature))
+                self._n_pending += k
+                self.counters["frames"] += k
+                self._last_positions = block.positions[-1]
+                return
+        for fr in block.frames():
+            self.frame(fr)
 
     def _open(self) -> None:
         ids: dict[int, None] = {}
@@ -206,7 +257,36 @@ class FrameWriter:
                 raise DiskFull(str(e)) from e
             raise UserError(f"cannot create {self.path}: {e}") from None
 
-    def _pack(self, items: list[tuple[int, float, LedFrame, float]]):
+    def _pack(self, items: list):
+        """The pending items as arrays (time, frame_index, positions, status, temperature)."""
+        pieces, frames = [], []
+        for it in items:
+            if isinstance(it, _Accepted):
+                if frames:
+                    pieces.append(self._pack_frames(frames))
+                    frames = []
+                pieces.append(self._pack_block(it))
+            else:
+                frames.append(it)
+        if frames:
+            pieces.append(self._pack_frames(frames))
+        if len(pieces) == 1:
+            return pieces[0]
+        return tuple(np.concatenate(arrays) for arrays in zip(*pieces, strict=True))
+
+    def _pack_block(self, acc: _Accepted):
+        b = acc.frames
+        k = len(b)
+        temp = np.full(k, acc.temperature, np.float32)
+        ids = b.led_ids
+        if ids.shape[1] == self.led_ids.shape[0] and np.all(ids == self.led_ids):
+            return b.device_time, acc.index, b.positions, b.status, temp
+        _, _, pos, status, _ = self._pack_frames(
+            [(0, 0.0, fr, 0.0) for fr in b.frames()]  # other LEDs: placed column by column
+        )
+        return b.device_time, acc.index, pos, status, temp
+
+    def _pack_frames(self, items: list[tuple[int, float, LedFrame, float]]):
         k = len(items)
         m = int(self.led_ids.shape[0])
         index = np.fromiter((it[0] for it in items), np.uint64, k)
@@ -242,7 +322,7 @@ class FrameWriter:
         self._raise_error()
         if self.appender is None or not self._pending:
             return
-        items, self._pending = self._pending, []
+        items, self._pending, self._n_pending = self._pending, [], 0
         if not self.threaded:
             self._write_items(items)
             return
@@ -271,7 +351,7 @@ class FrameWriter:
             self._thread.join()
             self._thread = None
 
-    def _write_items(self, items: list[tuple[int, float, LedFrame, float]]) -> None:
+    def _write_items(self, items: list) -> None:
         t, index, pos, status, temp = self._pack(items)
         full: DiskFull | None = None
         with _quiet_stderr_fd():  # h5py prints tracebacks of freed objects after a failed write
@@ -286,7 +366,7 @@ class FrameWriter:
                 sys.unraisablehook = _ignore_unraisable  # h5py objects freed later say it again
         if full is not None:
             raise full
-        self.counters["written"] += len(items)
+        self.counters["written"] += len(t)
 
     def close(self) -> None:
         """Write everything (creating the file now if the LED set was not fixed yet)."""
@@ -436,6 +516,8 @@ class Recorder:
         if not self.output.parent.is_dir():
             raise UserError(f"{self.output.parent}: no such directory")
         self.decoder = make_decoder(protocol)
+        if hasattr(self.decoder, "blocks"):
+            self.decoder.blocks = True  # frames as arrays (`LedFrames`), see FrameWriter.frames
         self.writer = FrameWriter(
             self.output,
             overwrite=force,
@@ -457,7 +539,9 @@ class Recorder:
         """Pass events to the writer; True when the device ended the stream."""
         ended = False
         for ev in events:
-            if isinstance(ev, LedFrame):
+            if isinstance(ev, LedFrames):
+                self.writer.frames(ev)
+            elif isinstance(ev, LedFrame):
                 self.writer.frame(ev)
             elif isinstance(ev, StatusMessage):
                 self.writer.status(ev)

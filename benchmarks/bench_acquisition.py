@@ -12,8 +12,11 @@
    sustains however the scheduler shares a busy machine; the wall-clock rate on a shared
    machine measures the share of the CPU the benchmark got, not the recorder. The wall rate
    and the reading thread's own CPU rate are reported beside it, with the load average.
-   The current writer is compared, in the same run, with the previous one (np.stack
-   packing, h5py's filter pipeline compressing in the writer thread under the GIL).
+   Three designs run in the same run: the current one (the decoder's `LedFrames` blocks,
+   taken whole by the writer; chunks deflated by ISA-L plane by plane), the same with
+   zlib's deflate (what runs where the `isal` package is missing), and the previous one
+   (one `LedFrame` per frame through decoder and writer; zlib `Z_RLE` over the whole
+   shuffled chunk), as of commit 53f3bae.
 2. Recorder load: `robtraj emulate` streams S seconds at 1000 Hz over a loopback socket to
    `robtraj record`; the recorder's CPU time is read from /proc/PID/stat while it records
    (start-up excluded) and divided by the wall time: the share of one core it needs.
@@ -22,20 +25,24 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import subprocess
 import sys
 import tempfile
 import time
+import types
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 from acquisition import protocol as proto
+from acquisition.events import LedFrame, LedFrames, StatusMessage
 from acquisition.recorder import FrameWriter
 from robtraj import recording
-from robtraj.recording import Recording, RecordingAppender, write_recording
+from robtraj.recording import Recording, write_recording
 
 M = 18
 
@@ -69,43 +76,52 @@ def _stream(n: int) -> bytes:
     return b"".join(parts)
 
 
-class _FilterPipelineAppender(RecordingAppender):
-    """The previous writer: h5py's own shuffle+gzip filter pipeline, in the calling thread."""
-
-    def __init__(self, *a, **kw) -> None:
-        super().__init__(*a, **kw)
-        if self._pool is not None:
-            self._pool.shutdown()
-        self._tail, self._pool = {}, None
-
-
-class _StackingFrameWriter(FrameWriter):
-    """The previous packing: one `np.stack` per array over the frames' small arrays."""
-
-    def _pack(self, items):
-        k, m = len(items), int(self.led_ids.shape[0])
-        frames = [it[2] for it in items]
-        if not all(fr.led_ids.shape[0] == m for fr in frames):
-            return super()._pack(items)
-        ids = np.stack([fr.led_ids for fr in frames])
-        if not np.all(ids == self.led_ids):
-            return super()._pack(items)
-        return (
-            np.fromiter((it[1] for it in items), np.float64, k),
-            np.fromiter((it[0] for it in items), np.uint64, k),
-            np.stack([fr.positions for fr in frames]),
-            np.stack([fr.status for fr in frames]).astype(np.uint8),
-            np.fromiter((it[3] for it in items), np.float32, k),
-        )
+def _zlib_shuffle_deflate(chunk):
+    """The chunk compression without ISA-L (and the previous design's): zlib level 1,
+    run-length matching only, over the whole shuffled chunk."""
+    a = np.ascontiguousarray(chunk)
+    raw = a.view(np.uint8).reshape(a.size, a.itemsize).T.tobytes()
+    z = zlib.compressobj(1, zlib.DEFLATED, 15, 8, zlib.Z_RLE)
+    return z.compress(raw) + z.flush()
 
 
+PREVIOUS_COMMIT = "53f3bae8a6b41e7a8a50c5450c4d04951d361ccf"  # the previous design
+
+
+def _previous_decoder() -> tuple[type, str]:
+    """The decoder as of PREVIOUS_COMMIT, read with ``git show`` (one `LedFrame` per
+    frame, each checked and parsed message by message). Outside a git checkout: the
+    current decoder frame by frame, said so in the results."""
+    try:
+        src = subprocess.run(
+            ["git", "show", f"{PREVIOUS_COMMIT}:acquisition/protocol.py"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return functools.partial(proto.Decoder, blocks=False), "current, frame by frame"
+    module = types.ModuleType("acquisition._protocol_previous")
+    module.__package__ = "acquisition"
+    exec(compile(src, f"acquisition/protocol.py@{PREVIOUS_COMMIT[:7]}", "exec"), module.__dict__)
+    return module.Decoder, f"acquisition/protocol.py@{PREVIOUS_COMMIT[:7]}"
+
+
+_PREVIOUS_DECODER, PREVIOUS_DECODER_SOURCE = _previous_decoder()
 _COMPRESS_CPU: list[float] = []  # CPU seconds of each chunk compression in the pool
-_shuffle_deflate = recording._shuffle_deflate
+# design name -> (decoder factory, chunk compression)
+DESIGNS = {
+    "current": (functools.partial(proto.Decoder, blocks=True), recording._shuffle_deflate),
+    "current_with_zlib": (functools.partial(proto.Decoder, blocks=True), _zlib_shuffle_deflate),
+    "previous": (_PREVIOUS_DECODER, _zlib_shuffle_deflate),
+}
+_DEFLATE = [recording._shuffle_deflate]  # the running design's chunk compression
 
 
 def _timed_shuffle_deflate(chunk):
     t = time.thread_time()
-    blob = _shuffle_deflate(chunk)
+    blob = _DEFLATE[0](chunk)
     _COMPRESS_CPU.append(time.thread_time() - t)  # list.append is atomic under the GIL
     return blob
 
@@ -113,28 +129,20 @@ def _timed_shuffle_deflate(chunk):
 recording._shuffle_deflate = _timed_shuffle_deflate  # the pool looks the name up per call
 
 
-# writer class, appender: the current design and the previous one (np.stack packing, h5py's
-# filter pipeline compressing in the writer thread while holding the GIL)
-DESIGNS = {
-    "current": (FrameWriter, RecordingAppender),
-    "previous": (_StackingFrameWriter, _FilterPipelineAppender),
-}
-
-
 def _decode_and_write(chunks, path, compression, write_interval, design):
-    dec = proto.Decoder()
-    writer_cls, appender_factory = DESIGNS[design]
-    writer = writer_cls(
-        path, led_set_seconds=0.5, compression=compression, appender_factory=appender_factory
-    )
+    decoder, _DEFLATE[0] = DESIGNS[design]
+    dec = decoder()
+    writer = FrameWriter(path, led_set_seconds=0.5, compression=compression)
     _COMPRESS_CPU.clear()
     t0, c0, r0 = time.perf_counter(), time.process_time(), time.thread_time()
     last_write = t0
     for c in chunks:
         for ev in dec.feed(c):
-            if isinstance(ev, proto.LedFrame):
+            if isinstance(ev, LedFrames):
+                writer.frames(ev)
+            elif isinstance(ev, LedFrame):
                 writer.frame(ev)
-            elif isinstance(ev, proto.StatusMessage):
+            elif isinstance(ev, StatusMessage):
                 writer.status(ev)
         now = time.perf_counter()
         if now - last_write >= write_interval:  # as the recorder: append + flush on a clock
@@ -149,31 +157,39 @@ def _decode_and_write(chunks, path, compression, write_interval, design):
 def throughput(
     n: int, tmp: Path, compression: str | None = "gzip", write_interval: float = 0.5
 ) -> dict:
-    """Frames/s through the decoder alone and through decoder + writer thread, for the
-    current appender and the previous one (h5py's filter pipeline), best of 3 each:
-    wall clock, process CPU time (all threads) and CPU time of the reading thread."""
+    """Frames/s through the decoder alone (blocks and frame by frame) and through decoder
+    + writer thread for each design (only current and previous without gzip, where the
+    deflate does not differ), best of 3 each: wall clock, process CPU time (all threads)
+    and CPU time of the reading thread; the CPU split per frame of each design's best run."""
     data = _stream(n)
     chunks = [data[k : k + 65536] for k in range(0, len(data), 65536)]
-    decode = {"wall": 0.0, "cpu": 0.0}
-    best = {d: {"wall": 0.0, "cpu": 0.0, "reading_thread_cpu": 0.0} for d in DESIGNS}
-    split = {}  # CPU µs per frame of the current design's best CPU run
+    designs = list(DESIGNS) if compression == "gzip" else ["current", "previous"]
+    decoders = {
+        "blocks": functools.partial(proto.Decoder, blocks=True),
+        "frame_by_frame": functools.partial(proto.Decoder, blocks=False),
+        "previous": _PREVIOUS_DECODER,
+    }
+    decode = {m: {"wall": 0.0, "cpu": 0.0} for m in decoders}
+    best = {d: {"wall": 0.0, "cpu": 0.0, "reading_thread_cpu": 0.0} for d in designs}
+    split: dict[str, dict] = {}  # CPU µs per frame of each design's best CPU run
     sizes = {}
     for rep in range(3):
-        dec = proto.Decoder()
-        t0, c0 = time.perf_counter(), time.process_time()
-        for c in chunks:
-            dec.feed(c)
-        decode["wall"] = max(decode["wall"], n / (time.perf_counter() - t0))
-        decode["cpu"] = max(decode["cpu"], n / (time.process_time() - c0))
-        for design in DESIGNS:
+        for mode, r in decode.items():
+            dec = decoders[mode]()
+            t0, c0 = time.perf_counter(), time.process_time()
+            for c in chunks:
+                dec.feed(c)
+            r["wall"] = max(r["wall"], n / (time.perf_counter() - t0))
+            r["cpu"] = max(r["cpu"], n / (time.process_time() - c0))
+        for design in designs:
             path = tmp / f"bench-{compression}-{design}-{rep}.h5"
             written, wall, cpu, reader, pool = _decode_and_write(
                 chunks, path, compression, write_interval, design
             )
             assert written == n
             b = best[design]
-            if design == "current" and n / cpu > b["cpu"]:
-                split = {
+            if n / cpu > b["cpu"]:
+                split[design] = {
                     "reading_thread": 1e6 * reader / n,
                     "compression_pool": 1e6 * pool / n,
                     "writer_thread_and_rest": 1e6 * (cpu - reader - pool) / n,
@@ -187,21 +203,25 @@ def throughput(
             sizes[design] = path.stat().st_size
             path.unlink()
     cur, prev = best["current"], best["previous"]
-    return {
+    out = {
         "frames": n,
         "leds": M,
         "bytes_per_frame": (len(data) - 9) / n,
         "compression": compression,
         "decode_frames_per_s": decode,
+        "previous_decoder": PREVIOUS_DECODER_SOURCE,
         "decode_and_write_frames_per_s": cur,
         "previous_writer_frames_per_s": prev,
         "ratio_vs_previous": {k: cur[k] / prev[k] for k in cur},
-        "cpu_us_per_frame_current": split,
-        "file_bytes_per_frame": {d: sizes[d] / n for d in DESIGNS},
+        "cpu_us_per_frame": split,
+        "file_bytes_per_frame": {d: sizes[d] / n for d in designs},
         "x_device_rate_1000hz_cpu": cur["cpu"] / 1000.0,
         "x_device_rate_1000hz_wall": cur["wall"] / 1000.0,
         "load_average_1_5_15": os.getloadavg(),
     }
+    if "current_with_zlib" in best:
+        out["current_with_zlib_frames_per_s"] = best["current_with_zlib"]
+    return out
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -287,6 +307,10 @@ def main() -> int:
         "asserted": "frames per process CPU-second (all threads), gzip, / 1000 Hz",
         "x_device_rate_gzip_cpu": x,
         "x_device_rate_gzip_wall": result["throughput_gzip"]["x_device_rate_1000hz_wall"],
+        "x_device_rate_gzip_cpu_with_zlib": (
+            result["throughput_gzip"]["current_with_zlib_frames_per_s"]["cpu"] / 1000.0
+        ),
+        "isal": recording._isal_zlib is not None,
         "required": TARGET_X,
         "met": x >= TARGET_X,
         "cpu_cores": os.cpu_count(),

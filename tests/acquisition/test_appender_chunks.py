@@ -6,7 +6,9 @@ import zlib
 
 import h5py
 import numpy as np
+import pytest
 
+from robtraj import recording
 from robtraj.recording import RecordingAppender, read_recording
 
 M = 5
@@ -23,7 +25,13 @@ def _frames(n: int, seed: int = 0):
     return np.arange(n) / 1000.0, np.arange(n, dtype=np.uint64), pos, status
 
 
-def test_appended_chunks_read_back_bit_identical_by_plain_h5py(tmp_path):
+@pytest.mark.parametrize("deflate", ["isal", "zlib"])
+def test_appended_chunks_read_back_bit_identical_by_plain_h5py(tmp_path, monkeypatch, deflate):
+    """Chunks deflated by ISA-L (plane by plane) or, without the isal package, by zlib."""
+    if deflate == "isal":
+        assert recording._isal_zlib is not None, "isal is a dependency: pip install isal"
+    else:
+        monkeypatch.setattr(recording, "_isal_zlib", None)
     n = sum(BATCHES)
     t, idx, pos, status = _frames(n)
     path = tmp_path / "a.h5"

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from acquisition import protocol as proto
-from acquisition.events import EndOfStream, LedFrame, StatusMessage
+from acquisition.events import EndOfStream, LedFrame, LedFrames, StatusMessage
 from acquisition.protocols import make_decoder, names
 from robtraj import UserError
 
@@ -134,12 +134,16 @@ def _split(data: bytes, cuts: list[int]) -> list[bytes]:
     return [data[a:b] for a, b in zip(edges, edges[1:])]
 
 
-def _decode(chunks: list[bytes]) -> tuple[list[bytes], dict]:
-    d = proto.Decoder()
+def _decode(chunks: list[bytes], blocks: bool = False) -> tuple[list[bytes], dict]:
+    """Messages decoded (re-encoded; `LedFrames` blocks as their frames) and counters."""
+    d = proto.Decoder(blocks=blocks)
     events = []
     for c in chunks:
         events += d.feed(c)
     events += d.finish()
+    if blocks:
+        assert not any(isinstance(e, LedFrame) for e in events)
+        events = [f for e in events for f in (e.frames() if isinstance(e, LedFrames) else [e])]
     return [proto.encode_event(e) for e in events], d.counters
 
 
@@ -154,11 +158,12 @@ def test_any_split_decodes_to_the_same_frames(msgs, cuts):
 
 
 @st.composite
-def damage(draw, msgs: list[bytes]):
-    """Damage some messages (flip bits, truncate, overwrite, insert garbage)."""
+def damage(draw, msgs: list[bytes], keep: int = 2):
+    """Damage some messages (flip bits, truncate, overwrite, insert garbage); `keep` is
+    the odds of a message left alone against each kind of damage."""
     wires, touched = [], []
     for m in msgs:
-        how = draw(st.sampled_from(["keep", "keep", "flip", "truncate", "overwrite", "garbage"]))
+        how = draw(st.sampled_from(["keep"] * keep + ["flip", "truncate", "overwrite", "garbage"]))
         if how == "keep":
             wires.append(m)
             touched.append(False)
@@ -200,6 +205,72 @@ def test_corruption_never_invents_and_loses_only_what_it_touched(data):
     assert decoded == untouched
     if any(touched) and any(wires):
         assert counters["bytes_skipped"] > 0 or all(not w for w, t in zip(wires, touched) if t)
+
+
+@st.composite
+def runs(draw) -> list[bytes]:
+    """Long runs of LED frames of one size (what a device sends), now and then a status
+    message or a frame of another size between them."""
+    n = draw(st.integers(0, 4))
+    t, counter, out = draw(st.integers(0, 2**40)), draw(st.integers(0, 2**32 - 1)), []
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    for kind in draw(st.lists(st.sampled_from(["frame"] * 12 + ["status", "other"]), max_size=60)):
+        t += int(rng.integers(1, 2000))
+        counter += 1
+        if kind == "status":
+            out.append(proto.encode_status(t, 24.5))
+            continue
+        k = n if kind == "frame" else (n + 1) % 5
+        status = rng.integers(0, 4, k).astype(np.uint8)
+        pos = np.float32(rng.normal(size=(k, 3)) * 1000.0)
+        pos[status == 1] = np.nan
+        out.append(proto.encode_led_frame(counter, t, np.arange(k, dtype=np.uint8), pos, status))
+    return out
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.data())
+def test_runs_checked_together_lose_only_what_was_touched_blocks_or_not(data):
+    """Frames of one size are checked in vectorised runs: a damaged frame inside a run, a
+    run cut by a chunk boundary or by another message, give exactly the untouched
+    messages, in both output forms and with the same counters."""
+    msgs = data.draw(runs())
+    wires, touched = data.draw(damage(msgs, keep=data.draw(st.sampled_from([2, 40]))))
+    chunks = _split(b"".join(wires), data.draw(st.lists(st.integers(0, 10**6), max_size=6)))
+    untouched = [m for m, t in zip(msgs, touched) if not t]
+    one_by_one, counters = _decode(chunks)
+    as_blocks, block_counters = _decode(chunks, blocks=True)
+    assert one_by_one == as_blocks == untouched
+    assert counters == block_counters
+
+
+def test_blocks_hold_consecutive_frames_of_one_size():
+    ids = np.arange(3, dtype=np.uint8)
+    pos = np.zeros((3, 3), np.float32)
+    frames = [
+        proto.encode_led_frame(i, 10 * i, ids, pos + i, np.zeros(3, np.uint8)) for i in range(9)
+    ]
+    other = proto.encode_led_frame(9, 90, ids[:2], pos[:2], np.zeros(2, np.uint8))
+    wire = b"".join(frames[:5]) + proto.encode_status(45, 20.0) + b"".join(frames[5:]) + other
+    events = proto.Decoder(blocks=True).feed(wire)
+    assert [type(e) for e in events] == [LedFrames, StatusMessage, LedFrames, LedFrames]
+    assert [len(e) for e in events if isinstance(e, LedFrames)] == [5, 4, 1]
+    b = events[2]
+    np.testing.assert_array_equal(b.frame_counter, [5, 6, 7, 8])
+    np.testing.assert_array_equal(b.device_time, [50e-6, 60e-6, 70e-6, 80e-6])
+    assert b.led_ids.shape == b.status.shape == (4, 3) and b.positions.shape == (4, 3, 3)
+    np.testing.assert_array_equal(b.positions[:, 0, 0], np.arange(5, 9) / 1000.0)
+
+
+@given(
+    st.integers(1, 300).flatmap(
+        lambda n: st.lists(st.binary(min_size=n, max_size=n), min_size=1, max_size=6)
+    )
+)
+def test_crc16_rows_is_crc16_of_each_row(rows):
+    got = proto.crc16_rows(np.frombuffer(b"".join(rows), np.uint8).reshape(len(rows), -1))
+    assert got.tolist() == [proto.crc16(r) for r in rows]
 
 
 def test_decoder_events_are_led_frames_with_the_interface_types():

@@ -11,7 +11,7 @@ from acq_helpers import check_against_ledger, synthetic_recording
 
 from acquisition import protocol as proto
 from acquisition.emulator import Emulator, Faults, SocketTransport, parse_faults
-from acquisition.events import LedFrame
+from acquisition.events import LedFrame, LedFrames, StatusMessage
 from acquisition.recorder import FrameWriter, Recorder
 from robtraj import UserError
 from robtraj.recording import RecordingAppender, read_recording, write_recording
@@ -163,6 +163,69 @@ def test_led_set_from_first_half_second_and_late_ids_counted(tmp_path):
     assert w.counters["lost"] == 3
     assert w.counters["out_of_order"] == 1 and w.counters["non_monotonic_time"] == 1
     assert np.isnan(rec.temperature).all()
+
+
+def _blocks(seed: int) -> list:
+    """Blocks of frames as a decoder gives them, with status messages between them, and
+    all the irregular cases: counter wrap, gaps, repeats, backward steps, times that do
+    not increase, other LED sets and sizes."""
+    rng = np.random.default_rng(seed)
+    ids = np.array([4, 7, 9, 12])
+    counter, t, events = 2**32 - 300, 1.0, []
+    for j in range(40):
+        k = int(rng.integers(1, 40))
+        step = np.ones(k, np.int64)
+        odd = rng.random(k)
+        step[odd < 0.05] = rng.integers(2, 50)  # lost frames
+        step[odd > 0.97] = 0  # a repeat
+        step[(odd > 0.95) & (odd <= 0.97)] = -3  # backwards
+        counters = counter + np.cumsum(step)
+        counter = int(counters[-1])
+        dt = np.full(k, 1e-3)
+        dt[rng.random(k) < 0.03] = -2e-3  # time going back
+        times = t + np.cumsum(dt)
+        t = float(times[-1])
+        block_ids = np.tile(ids, (k, 1))
+        if j > 5 and rng.random() < 0.15:  # another LED set (unknown id, other order, fewer)
+            block_ids = np.tile(
+                rng.choice([4, 7, 9, 12, 30], size=int(rng.integers(1, 5)), replace=False), (k, 1)
+            )
+        n = block_ids.shape[1]
+        status = rng.integers(0, 4, (k, n)).astype(np.uint8)
+        pos = rng.normal(size=(k, n, 3))
+        pos[status == 1] = np.nan
+        events.append(LedFrames(counters % 2**32, times, block_ids, pos, status))
+        if rng.random() < 0.5:
+            events.append(StatusMessage(t, float(rng.normal(24.0, 1.0))))
+    return events
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_blocks_are_written_as_their_frames_one_by_one(tmp_path, seed):
+    """`FrameWriter.frames` (whole blocks where it can) gives the rows and counters that
+    `frame` gives for the same frames one by one."""
+    events = _blocks(seed)
+    writers = {}
+    for how in ("blocks", "frames"):
+        w = writers[how] = FrameWriter(tmp_path / f"{how}.h5", led_set_seconds=0.05)
+        for i, ev in enumerate(events):
+            if isinstance(ev, StatusMessage):
+                w.status(ev)
+            elif how == "blocks":
+                w.frames(ev)
+            else:
+                for fr in ev.frames():
+                    w.frame(fr)
+            if i % 7 == 6:
+                w.write()
+        w.close()
+    assert writers["blocks"].counters == writers["frames"].counters
+    assert writers["blocks"].counters["lost"] > 0 and writers["blocks"].counters["out_of_order"] > 0
+    assert writers["blocks"].counters["non_monotonic_time"] > 0
+    assert writers["blocks"].unknown_led_ids == writers["frames"].unknown_led_ids == {30}
+    a, b = read_recording(tmp_path / "blocks.h5"), read_recording(tmp_path / "frames.h5")
+    for key in ("time", "frame_index", "led_ids", "positions", "status", "temperature"):
+        assert getattr(a, key).tobytes() == getattr(b, key).tobytes(), key
 
 
 def test_short_stream_still_written(tmp_path):
