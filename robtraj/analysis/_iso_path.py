@@ -86,11 +86,13 @@ class PathCharacteristics:
 
 @dataclasses.dataclass(frozen=True)
 class CornerCharacteristics:
-    """Corner round-off `CR` (closest approach of the measured path to the corner) and
-    corner overshoot `CO` (largest deviation from the second leg in its first half) [m],
+    """Corner round-off `CR` (closest approach of the measured path to the commanded
+    corner `commanded_position`) and corner overshoot `CO` (largest distance from the
+    commanded path of the frames nearest to the second leg, in its first half) [m],
     mean and max over `n` passes; `ci`: Student-t 95 % intervals of the means."""
 
     name: str
+    commanded_position: np.ndarray
     n: int
     CR_mean: float
     CR_max: float
@@ -101,7 +103,8 @@ class CornerCharacteristics:
     def to_json(self) -> dict[str, Any]:
         rows = [("CR_mean_mm", self.CR_mean, 1e3), ("CR_max_mm", self.CR_max, 1e3),
                 ("CO_mean_mm", self.CO_mean, 1e3), ("CO_max_mm", self.CO_max, 1e3)]  # fmt: skip
-        return {"n": self.n} | with_intervals(rows, self.ci, {})
+        head = {"n": self.n, "commanded_mm": (self.commanded_position * 1e3).tolist()}
+        return head | with_intervals(rows, self.ci, {})
 
 
 def path_characteristics(
@@ -304,6 +307,7 @@ def _nanmax(v: np.ndarray, axis: int | None = None) -> Any:
 def _corners(moves, cluster, names, tp, position, dev, frac_all, corner_angle):
     path_moves = {j for occ in moves.values() for j in occ}
     found: dict[int, list[tuple[float, float]]] = {}
+    point: dict[int, np.ndarray] = {}
     for j in sorted(path_moves):
         if j + 1 not in path_moves:
             continue
@@ -320,12 +324,14 @@ def _corners(moves, cluster, names, tp, position, dev, frac_all, corner_angle):
         cr = float(np.min(np.linalg.norm(position[near] - tp[j], axis=1)))
         co = float(np.max(dev.distance[leg2]))
         found.setdefault(int(cluster[j]), []).append((cr, co))
+        point.setdefault(int(cluster[j]), tp[j])
     out = []
     for c, v in found.items():
         if len(v) < 1:
             continue
         cr, co = np.array(v).T
         ci = {"CR_mean": pair(*t_interval(cr)), "CO_mean": pair(*t_interval(co))}
-        out.append(CornerCharacteristics(names[c], len(v), float(cr.mean()), float(cr.max()),
-                                         float(co.mean()), float(co.max()), ci))  # fmt: skip
+        out.append(CornerCharacteristics(names[c], point[c], len(v), float(cr.mean()),
+                                         float(cr.max()), float(co.mean()), float(co.max()),
+                                         ci))  # fmt: skip
     return out
