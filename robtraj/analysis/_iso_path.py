@@ -17,14 +17,14 @@ from ._iso_ci import (
     Interval,
     batch_rotation_angle,
     max_interval,
+    max_length_interval,
     pair,
     rp_gaussian_interval,
-    studentized_interval,
     t_interval,
     three_s_interval,
     with_intervals,
 )
-from ._quat import error_components, slerp
+from ._quat import error_components, slerp, to_rotation
 from .deviation import commanded_path, path_deviation
 
 _MAX_REFERENCE_SAMPLES = 2_000_000
@@ -42,9 +42,9 @@ class PathCharacteristics:
     move: `AV` = (v̄ − v_c)/v_c, `RV` = 3·S_v̄/v_c (fractions), `FV` = max over passes of
     (max − min speed) [m/s]. `plane_AT`, `plane_RT` `(n_planes,)` per plane. `ci`: 95 %
     intervals keyed by the JSON names without unit, in SI (fractions for AV, RV):
-    studentised bootstrap over passes for AT (position, a/b/c, angle), simultaneous
-    per-plane Gaussian / χ² intervals for RT (`max_interval`), Student t / χ² for
-    AV / RV; none for FV (a maximum over passes).
+    the restricted bootstrap of the maximum over planes for AT (position, a/b/c, angle;
+    `max_length_interval`), simultaneous per-plane Gaussian / χ² intervals for RT
+    (`max_interval`), Student t / χ² for AV / RV; none for FV (a maximum over passes).
     """
 
     name: str
@@ -245,9 +245,7 @@ def path_statistics(
             at_abc = np.nanmax(np.abs(np.nanmean(e, axis=0)), axis=0)
             rt_abc = np.nanmax(3.0 * np.nanstd(e, axis=0, ddof=1), axis=0)
             at_angle = float(np.nanmax(plane_angle(q0)))
-            ci["AT"] = studentized_interval(
-                lambda xb: np.nanmax(plane_at(xb), -1), [x], rng, n_boot
-            )
+            ci["AT"] = max_length_interval(x - c, rng, n_boot)
             # RT: a maximum over planes of equal-valued RTs is biased up; simultaneous
             # per-plane intervals bound it instead (`max_interval`)
             k_planes = x.shape[1]
@@ -259,16 +257,18 @@ def path_statistics(
             ])  # fmt: skip
             for k, axis in enumerate("abc"):
                 ek = e[..., k]
-                ci[f"AT{axis}"] = studentized_interval(
-                    lambda eb: np.nanmax(np.abs(np.nanmean(eb, -2)), -1), [ek], rng, n_boot
-                )
+                ci[f"AT{axis}"] = max_length_interval(ek[..., None], rng, n_boot)
                 ci[f"RT{axis}"] = max_interval([
                     pair(*three_s_interval(ek[np.isfinite(ek[:, i]), i], simultaneous))
                     for i in range(k_planes)
                 ])  # fmt: skip
-            ci["AT_angle"] = studentized_interval(
-                lambda qb: np.nanmax(plane_angle(qb), -1), [q0], rng, n_boot
-            )
+            # rotation vectors of the errors: the length of their mean is the single
+            # angle of the mean orientation to first order
+            rv = np.full(x.shape, np.nan)
+            rv[ok] = (
+                to_rotation(q[ok]) * to_rotation(np.broadcast_to(qc, q.shape)[ok]).inv()
+            ).as_rotvec()
+            ci["AT_angle"] = max_length_interval(rv, rng, n_boot)
     vm, vc = np.asarray(v_mean, np.float64), commanded_speed
     has_v = vm.size > 0 and vc > 0
     if has_v:
