@@ -4,8 +4,10 @@ Where the sampling distribution is known for normally scattered cycles the inter
 exact: Student's t for a mean (AP components, AD, AV, mean stabilisation time, …) and
 the χ² interval for a 3·S term (RD, RV, RP per orientation component). Every other
 RP and the single-angle RP (l̄ + 3·S_l of distances to the mean) come from their
-Gaussian sampling distribution (`rp_gaussian_interval`). Every other characteristic
-(lengths of means, maxima over planes, differences between groups of cycles) gets a studentised (bootstrap-t) interval over cycles, stratified
+Gaussian sampling distribution (`rp_gaussian_interval`); maxima over planes come from
+simultaneous per-plane intervals (RT, `max_interval`) or a restricted bootstrap (AT,
+`max_length_interval`). Every other characteristic (lengths of means, differences
+between groups of cycles) gets a studentised (bootstrap-t) interval over cycles, stratified
 where cycles fall into groups (approach directions, early/late cycles), each resample
 standardised by its jackknife standard error (second-order accurate, where the
 percentile bootstrap under-covers with few cycles). Bootstraps of l̄ + 3·S_l
@@ -220,6 +222,74 @@ def max_interval(intervals: Sequence[Interval]) -> Interval:
     estimates is biased up, so a bootstrap of it misses an equal-valued truth."""
     iv = np.array([i for i in intervals if np.all(np.isfinite(i))])
     return (float(iv[:, 0].max()), float(iv[:, 1].max())) if iv.size else NAN_INTERVAL
+
+
+def max_length_interval(
+    errors: Float[np.ndarray, "passes planes dim"],
+    rng: np.random.Generator,
+    n_boot: int = N_BOOT,
+    level: float = LEVEL,
+) -> Interval:
+    """Interval of θ = max_k |μ_k|, the largest length over planes of the mean error, from
+    the passes' `errors` (NaN where a pass misses a plane; planes need two passes).
+
+    The maximum of estimates is biased up where planes tie near the top, so a bootstrap
+    of it centred on the estimate under-covers. Instead θ0 is tested, and kept when the
+    observed T = max_k |ē_k| lies between the (1 ∓ level)/2 quantiles of T under the
+    means restricted to max_k |μ_k| = θ0 (each ē_k shortened to θ0 where longer, the
+    longest one lengthened to θ0 where all are shorter: planes at the top tie again),
+    with the noise of the means drawn from the passes' residuals with Gaussian
+    multipliers (N(0, Σ̂_k/n_k), correlated between planes as the passes make them),
+    scaled by t_{n_k−1}/z at the level for the uncertainty of each plane's scatter
+    (exact for one resolved plane). The interval runs from the smallest to the largest
+    kept θ0 on a grid, interpolated; it starts at 0 where θ0 = 0 is kept. Coverage is
+    near `level` with one plane on top and above it where planes tie (design notes).
+    """
+    e = np.asarray(errors, np.float64)
+    valid = np.all(np.isfinite(e), axis=-1)  # (passes, planes)
+    use = valid.sum(axis=0) >= 2
+    e, valid = e[:, use], valid[:, use]
+    n_pass, n_planes = valid.shape
+    if n_planes == 0:
+        return NAN_INTERVAL
+    nk = valid.sum(axis=0)
+    m = np.nanmean(np.where(valid[..., None], e, np.nan), axis=0)  # (planes, dim)
+    g = np.linalg.norm(m, axis=-1)
+    z = stats.norm.ppf(0.5 + level / 2)
+    scale = np.sqrt(nk / (nk - 1)) * stats.t.ppf(0.5 + level / 2, nk - 1) / z
+    r = np.where(valid[..., None], (e - m) * scale[:, None], 0.0)
+    # Gaussian multipliers: N(0, Σ̂_k/n_k) per plane, correlated between planes as the
+    # passes are (resampling 5–10 passes gives a lumpy, short-tailed distribution)
+    xi = rng.standard_normal((n_boot, n_pass))
+    noise = np.einsum("bi,ikd->bkd", xi, r) / nk[:, None]
+    t_obs = float(g.max())
+    span = 1.5 * float(np.nanmax(np.linalg.norm(noise, axis=-1)))
+    if not np.isfinite(span) or span == 0.0:
+        return t_obs, t_obs
+    theta = np.linspace(max(t_obs - span, 0.0), t_obs + span, 64)
+    top = int(np.argmax(g))
+    shrink = np.minimum(1.0, theta[:, None] / np.maximum(g, 1e-300))  # (grid, planes)
+    shrink[:, top] = theta / max(g[top], 1e-300)  # the longest: shortened or lengthened
+    # |f·ē_k + noise|² without the (grid, boot, planes, dim) array
+    mn = np.einsum("kd,bkd->bk", m, noise)
+    nn = np.sum(noise * noise, axis=-1)
+    f = shrink[:, None, :]
+    length2 = f * f * (g * g) + 2.0 * f * mn + nn  # (grid, boot, planes)
+    t_boot = np.sqrt(np.max(np.where(np.isfinite(length2), length2, -np.inf), axis=-1))
+    q_lo, q_hi = np.quantile(t_boot, [0.5 - level / 2, 0.5 + level / 2], axis=1)
+    return _first_drop(theta, t_obs - q_hi), _first_drop(theta, t_obs - q_lo)
+
+
+def _first_drop(x: np.ndarray, d: np.ndarray) -> float:
+    """Where `d` (sampled at increasing `x`) first falls from > 0 to ≤ 0, linearly
+    interpolated; `x[0]` where it starts ≤ 0, `x[-1]` where it never falls."""
+    if d[0] <= 0:
+        return float(x[0])
+    i = np.flatnonzero((d[:-1] > 0) & (d[1:] <= 0))
+    if i.size == 0:
+        return float(x[-1])
+    k = int(i[0])
+    return float(x[k] + (x[k + 1] - x[k]) * d[k] / (d[k] - d[k + 1]))
 
 
 def rp_difference_interval(

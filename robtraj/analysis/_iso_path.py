@@ -17,14 +17,14 @@ from ._iso_ci import (
     Interval,
     batch_rotation_angle,
     max_interval,
+    max_length_interval,
     pair,
     rp_gaussian_interval,
-    studentized_interval,
     t_interval,
     three_s_interval,
     with_intervals,
 )
-from ._quat import error_components, slerp
+from ._quat import error_components, slerp, to_rotation
 from .deviation import commanded_path, path_deviation
 
 _MAX_REFERENCE_SAMPLES = 2_000_000
@@ -42,9 +42,9 @@ class PathCharacteristics:
     move: `AV` = (v̄ − v_c)/v_c, `RV` = 3·S_v̄/v_c (fractions), `FV` = max over passes of
     (max − min speed) [m/s]. `plane_AT`, `plane_RT` `(n_planes,)` per plane. `ci`: 95 %
     intervals keyed by the JSON names without unit, in SI (fractions for AV, RV):
-    studentised bootstrap over passes for AT (position, a/b/c, angle), simultaneous
-    per-plane Gaussian / χ² intervals for RT (`max_interval`), Student t / χ² for
-    AV / RV; none for FV (a maximum over passes).
+    the restricted bootstrap of the maximum over planes for AT (position, a/b/c, angle;
+    `max_length_interval`), simultaneous per-plane Gaussian / χ² intervals for RT
+    (`max_interval`), Student t / χ² for AV / RV; none for FV (a maximum over passes).
     """
 
     name: str
@@ -86,11 +86,13 @@ class PathCharacteristics:
 
 @dataclasses.dataclass(frozen=True)
 class CornerCharacteristics:
-    """Corner round-off `CR` (closest approach of the measured path to the corner) and
-    corner overshoot `CO` (largest deviation from the second leg in its first half) [m],
+    """Corner round-off `CR` (closest approach of the measured path to the commanded
+    corner `commanded_position`) and corner overshoot `CO` (largest distance from the
+    commanded path of the frames nearest to the second leg, in its first half) [m],
     mean and max over `n` passes; `ci`: Student-t 95 % intervals of the means."""
 
     name: str
+    commanded_position: np.ndarray
     n: int
     CR_mean: float
     CR_max: float
@@ -101,7 +103,8 @@ class CornerCharacteristics:
     def to_json(self) -> dict[str, Any]:
         rows = [("CR_mean_mm", self.CR_mean, 1e3), ("CR_max_mm", self.CR_max, 1e3),
                 ("CO_mean_mm", self.CO_mean, 1e3), ("CO_max_mm", self.CO_max, 1e3)]  # fmt: skip
-        return {"n": self.n} | with_intervals(rows, self.ci, {})
+        head = {"n": self.n, "commanded_mm": (self.commanded_position * 1e3).tolist()}
+        return head | with_intervals(rows, self.ci, {})
 
 
 def path_characteristics(
@@ -242,9 +245,7 @@ def path_statistics(
             at_abc = np.nanmax(np.abs(np.nanmean(e, axis=0)), axis=0)
             rt_abc = np.nanmax(3.0 * np.nanstd(e, axis=0, ddof=1), axis=0)
             at_angle = float(np.nanmax(plane_angle(q0)))
-            ci["AT"] = studentized_interval(
-                lambda xb: np.nanmax(plane_at(xb), -1), [x], rng, n_boot
-            )
+            ci["AT"] = max_length_interval(x - c, rng, n_boot)
             # RT: a maximum over planes of equal-valued RTs is biased up; simultaneous
             # per-plane intervals bound it instead (`max_interval`)
             k_planes = x.shape[1]
@@ -256,16 +257,18 @@ def path_statistics(
             ])  # fmt: skip
             for k, axis in enumerate("abc"):
                 ek = e[..., k]
-                ci[f"AT{axis}"] = studentized_interval(
-                    lambda eb: np.nanmax(np.abs(np.nanmean(eb, -2)), -1), [ek], rng, n_boot
-                )
+                ci[f"AT{axis}"] = max_length_interval(ek[..., None], rng, n_boot)
                 ci[f"RT{axis}"] = max_interval([
                     pair(*three_s_interval(ek[np.isfinite(ek[:, i]), i], simultaneous))
                     for i in range(k_planes)
                 ])  # fmt: skip
-            ci["AT_angle"] = studentized_interval(
-                lambda qb: np.nanmax(plane_angle(qb), -1), [q0], rng, n_boot
-            )
+            # rotation vectors of the errors: the length of their mean is the single
+            # angle of the mean orientation to first order
+            rv = np.full(x.shape, np.nan)
+            rv[ok] = (
+                to_rotation(q[ok]) * to_rotation(np.broadcast_to(qc, q.shape)[ok]).inv()
+            ).as_rotvec()
+            ci["AT_angle"] = max_length_interval(rv, rng, n_boot)
     vm, vc = np.asarray(v_mean, np.float64), commanded_speed
     has_v = vm.size > 0 and vc > 0
     if has_v:
@@ -304,6 +307,7 @@ def _nanmax(v: np.ndarray, axis: int | None = None) -> Any:
 def _corners(moves, cluster, names, tp, position, dev, frac_all, corner_angle):
     path_moves = {j for occ in moves.values() for j in occ}
     found: dict[int, list[tuple[float, float]]] = {}
+    point: dict[int, np.ndarray] = {}
     for j in sorted(path_moves):
         if j + 1 not in path_moves:
             continue
@@ -320,12 +324,14 @@ def _corners(moves, cluster, names, tp, position, dev, frac_all, corner_angle):
         cr = float(np.min(np.linalg.norm(position[near] - tp[j], axis=1)))
         co = float(np.max(dev.distance[leg2]))
         found.setdefault(int(cluster[j]), []).append((cr, co))
+        point.setdefault(int(cluster[j]), tp[j])
     out = []
     for c, v in found.items():
         if len(v) < 1:
             continue
         cr, co = np.array(v).T
         ci = {"CR_mean": pair(*t_interval(cr)), "CO_mean": pair(*t_interval(co))}
-        out.append(CornerCharacteristics(names[c], len(v), float(cr.mean()), float(cr.max()),
-                                         float(co.mean()), float(co.max()), ci))  # fmt: skip
+        out.append(CornerCharacteristics(names[c], point[c], len(v), float(cr.mean()),
+                                         float(cr.max()), float(co.mean()), float(co.max()),
+                                         ci))  # fmt: skip
     return out

@@ -31,6 +31,14 @@ class Move:
     `position`). `settle` = (amplitude [m], decay time τ [s], frequency [Hz]): after a
     linear move the TCP rings about the attained position along the move's direction,
     amplitude·e^(−t/τ)·sin(2π·frequency·t), t from the arrival.
+
+    `zone` [m] makes this target a fly-by corner between two linear moves (no dwell):
+    the TCP leaves the straight line `zone` before the target and joins the next move
+    `zone` after it on a circular arc tangent to both (`Corner.arc`), so it never reaches
+    the target. The timing stays rest-to-rest: the TCP comes to rest at the arc's middle.
+    `corner_settle` = (amplitude [m], τ [s], frequency [Hz]): from where the TCP joins
+    the next move it rings across it, toward the outside of the corner, as `settle` does
+    (for at most 8τ, within that move).
     """
 
     position: np.ndarray
@@ -40,6 +48,8 @@ class Move:
     dwell: float  # [s] standing still after arriving
     error: np.ndarray | None = None
     settle: tuple[float, float, float] | None = None
+    zone: float = 0.0
+    corner_settle: tuple[float, float, float] | None = None
 
     @property
     def attained(self) -> np.ndarray:
@@ -69,6 +79,92 @@ def trapezoid_progress(t: np.ndarray, duration: float, accel_time: float) -> np.
             1.0 - 0.5 * vmax / ta * (duration - t) ** 2,
         ),
     )
+
+
+def trapezoid_time(s: np.ndarray | float, duration: float, accel_time: float) -> np.ndarray:
+    """Time [s] at which `trapezoid_progress` reaches `s` ∈ [0, 1] (its inverse)."""
+    ta = min(accel_time, duration / 2)
+    vmax = 1.0 / (duration - ta)
+    s = np.clip(s, 0.0, 1.0)
+    s_a = 0.5 * vmax * ta  # progress at the end of the acceleration
+    return np.where(
+        s < s_a,
+        np.sqrt(2.0 * s * ta / vmax),
+        np.where(
+            s <= 1.0 - s_a,
+            ta + (s - s_a) / vmax,
+            duration - np.sqrt(2.0 * np.clip(1.0 - s, 0.0, None) * ta / vmax),
+        ),
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Corner:
+    """A fly-by corner at `point` [m] between the move along unit `d1` and the next one,
+    turning by `angle` [rad], cut by an arc tangent to both legs `zone` [m] from the
+    corner: radius `zone`·cot(angle/2). `turn`: unit vector ⊥ `d1` toward the next leg;
+    `outward`: unit vector ⊥ the next leg away from the inside of the corner."""
+
+    point: np.ndarray
+    d1: np.ndarray
+    angle: float
+    zone: float
+    turn: np.ndarray
+    outward: np.ndarray
+
+    @classmethod
+    def between(cls, before: np.ndarray, point: np.ndarray, after: np.ndarray, zone: float):
+        d1 = (point - before) / np.linalg.norm(point - before)
+        d2 = (after - point) / np.linalg.norm(after - point)
+        cos = float(np.clip(d1 @ d2, -1.0, 1.0))
+        turn, outward = d2 - cos * d1, d1 - cos * d2
+        return cls(point, d1, float(np.arccos(cos)), zone,
+                   turn / np.linalg.norm(turn), outward / np.linalg.norm(outward))  # fmt: skip
+
+    @property
+    def round_off(self) -> float:
+        """Distance [m] from the corner to the arc (its middle): zone·tan(angle/4)."""
+        return self.zone * float(np.tan(self.angle / 4))
+
+    def arc(self, beta: np.ndarray) -> np.ndarray:
+        """`(n, 3)` points [m] of the arc after turning by `beta` ∈ [0, angle] [rad] from
+        where it leaves the first leg."""
+        r = self.zone / np.tan(self.angle / 2)
+        return (self.point - self.zone * self.d1 + r * np.sin(beta)[:, None] * self.d1
+                + r * (1.0 - np.cos(beta))[:, None] * self.turn)  # fmt: skip
+
+
+def ring(t: np.ndarray, settle: tuple[float, float, float]) -> np.ndarray:
+    """Ringing amplitude·e^(−t/τ)·sin(2π·frequency·t) [m] at times `t` [s] from its start."""
+    amp, tau, freq = settle
+    return amp * np.exp(-t / tau) * np.sin(2.0 * np.pi * freq * t)
+
+
+def ring_peak(settle: tuple[float, float, float]) -> float:
+    """Largest excursion [m] of `ring`: at t = atan(ωτ)/ω (ω = 2π·frequency)."""
+    _, tau, freq = settle
+    w = 2.0 * np.pi * freq
+    return float(ring(np.array([np.arctan(w * tau) / w]), settle)[0])
+
+
+def _corners(moves: list[Move]) -> list[Corner | None]:
+    """The fly-by corner at each target (None where the robot passes through it)."""
+    out: list[Corner | None] = [None] * len(moves)
+    for i, m in enumerate(moves):  # program targets, not frames
+        if m.zone <= 0:
+            continue
+        fly_by = 0 < i < len(moves) - 1 and m.dwell == 0 and m.motion == "linear"
+        if not (fly_by and moves[i + 1].motion == "linear"):
+            raise UserError("a corner zone needs linear moves on both sides and no dwell")
+        c = Corner.between(moves[i - 1].attained, m.attained, moves[i + 1].attained, m.zone)
+        if not 1e-6 < c.angle < np.pi - 1e-6:
+            raise UserError("a corner zone needs moves that change direction and do not reverse")
+        out[i] = c
+    for i in range(1, len(moves)):
+        ends = [c.zone for c in (out[i - 1], out[i]) if c is not None]
+        if sum(ends) > np.linalg.norm(moves[i].attained - moves[i - 1].attained):
+            raise UserError("corner zones overlap on a move shorter than their sum")
+    return out
 
 
 def _rest_to_rest(distance: float, speed: float, acceleration: float) -> tuple[float, float]:
@@ -133,6 +229,7 @@ def joint_log(
         )
         return tcp @ tool_from_flange
 
+    corners = _corners(moves)
     q_targets = [_ik_point(robot, flange_target(moves[0]), q_seed)]
     starts, durations, accel = [], [], []
     t = moves[0].dwell
@@ -176,24 +273,38 @@ def joint_log(
         if b.motion == "joint":
             q_direct[moving] = q_targets[i - 1] + s[:, None] * (q_targets[i] - q_targets[i - 1])
             continue
-        pos = a.attained + s[:, None] * (b.attained - a.attained)
+        step = b.attained - a.attained
+        pos = a.attained + s[:, None] * step
+        length = float(np.linalg.norm(step))
+        start, end = corners[i - 1], corners[i]
+        if start is not None:  # leave the previous corner's arc, then ring across this move
+            u = s * length
+            on = u < start.zone
+            pos[on] = start.arc(0.5 * start.angle * (1.0 + u[on] / start.zone))
+            if moves[i - 1].corner_settle is not None:
+                settle = moves[i - 1].corner_settle
+                joined = s0 + float(trapezoid_time(start.zone / length, d, accel[i - 1]))
+                dt = times[moving] - joined
+                r = (dt > 0) & (dt <= 8.0 * settle[1])
+                pos[r] += ring(dt[r], settle)[:, None] * start.outward
+        if end is not None:  # onto this target's arc
+            u = (1.0 - s) * length
+            on = u < end.zone
+            pos[on] = end.arc(0.5 * end.angle * (1.0 - u[on] / end.zone))
         ends = np.stack([a.quaternion_wxyz, b.quaternion_wxyz])
         rots = Slerp([0.0, 1.0], Rotation.from_quat(ends, scalar_first=True))(s)
         flange_rot = rots * tff_rot
         poses[moving, :4] = flange_rot.as_quat(scalar_first=True)
         poses[moving, 4:] = pos + rots.apply(tff_pos)
         use_direct[moving] = False
-        step = b.attained - a.attained
-        if b.settle is not None and np.linalg.norm(step) > 0:
-            amp, tau, freq = b.settle
+        if b.settle is not None and length > 0:
             dt = times - (s0 + d)
-            ring = (dt > 0) & (dt <= min(b.dwell, 8.0 * tau))
-            r = amp * np.exp(-dt[ring] / tau) * np.sin(2.0 * np.pi * freq * dt[ring])
+            rings = (dt > 0) & (dt <= min(b.dwell, 8.0 * b.settle[1]))
             rot = Rotation.from_quat(b.quaternion_wxyz, scalar_first=True)
-            tcp = b.attained + r[:, None] * step / np.linalg.norm(step)
-            poses[ring, :4] = (rot * tff_rot).as_quat(scalar_first=True)
-            poses[ring, 4:] = tcp + rot.apply(tff_pos)
-            use_direct[ring] = False
+            tcp = b.attained + ring(dt[rings], b.settle)[:, None] * step / length
+            poses[rings, :4] = (rot * tff_rot).as_quat(scalar_first=True)
+            poses[rings, 4:] = tcp + rot.apply(tff_pos)
+            use_direct[rings] = False
     q = np.asarray(
         _ik_track(
             robot,

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import UserError
-from ._motion import LINEAR_ACCELERATION, Move
+from ._motion import LINEAR_ACCELERATION, Corner, Move, ring, ring_peak
 
 #: TCP orientation with tool z along base +x (toward the camera), tool y along base y
 FACING_CAMERA = Rotation.from_matrix(np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]))
@@ -89,6 +89,12 @@ ISO_CUBE_SPEED = 0.4  # [m/s] pose-test moves
 ISO_CUBE_CYCLE_TIME = 13.5  # [s] one pose cycle (five moves, 1 s dwell each)
 #: P1 → P5 → P4 → P3 → P2 → P1 in even cycles, the reverse in odd ones
 ISO_CUBE_ORDER = ([4, 3, 2, 1, 0], [1, 2, 3, 4, 0])
+#: path test corners at the positions of P3, P4, P5 (the rectangle's second to fourth
+#: targets): corner zone [m] (gives CR) and amplitude [m] of the ringing across the next
+#: leg (gives CO); the rectangle's start at P2 is a fine point (the robot stops there)
+ISO_CUBE_CORNERS = ((2e-3, 2.5e-3), (3e-3, 3.5e-3), (4e-3, 3e-3))
+#: decay time τ [s] and frequency [Hz] of the ringing after each corner
+ISO_CUBE_CORNER_RING = (0.06, 5.0)
 
 
 def iso_cube_cycles(duration: float) -> int:
@@ -102,7 +108,9 @@ def iso_cube(duration: float, rng: np.random.Generator) -> list[Move]:
     then a rectangular path through P2–P5 with reorientation, repeated.
 
     The pose-test moves carry the known truths of `iso_cube_truth`: an error along the
-    approach direction, a drift growing with the cycle and a ringing after arrival.
+    approach direction, a drift growing with the cycle and a ringing after arrival. The
+    path's corners at P3–P5 are flown by (`ISO_CUBE_CORNERS`, truths in
+    `iso_cube_corner_truth`).
     """
     poses = iso_cube_poses()
     q0 = _q(FACING_CAMERA)
@@ -120,9 +128,12 @@ def iso_cube(duration: float, rng: np.random.Generator) -> list[Move]:
     n_paths = max(2, int(duration / 3 / 9.0))
     moves.append(Move(rect[0], tilts[0], "linear", speed, 0.5))
     for _ in range(n_paths):
-        for j in [1, 2, 3, 0]:
-            moves.append(Move(rect[j], tilts[j], "linear", 0.2, 0.0))
-        moves[-1] = Move(rect[0], tilts[0], "linear", 0.2, 0.5)
+        for j, (zone, amp) in zip([1, 2, 3], ISO_CUBE_CORNERS):
+            ringing = (amp, *ISO_CUBE_CORNER_RING)
+            moves.append(
+                Move(rect[j], tilts[j], "linear", 0.2, 0.0, zone=zone, corner_settle=ringing)
+            )
+        moves.append(Move(rect[0], tilts[0], "linear", 0.2, 0.5))
     moves.append(Move(poses[0], q0, "linear", speed, 0.5))
     return moves
 
@@ -151,11 +162,8 @@ def iso_cube_truth(
             u = (poses[k] - prev) / np.linalg.norm(poses[k] - prev)
             errs.setdefault(k, []).append((c, u, ISO_CUBE_APPROACH_ERROR * u + ISO_CUBE_DRIFT * c))
             prev = poses[k]
-    amp, tau, freq = ISO_CUBE_SETTLE
-    w = 2.0 * np.pi * freq
-    t_peak = np.arctan(w * tau) / w
-    t = np.arange(0.0, 8.0 * tau, 1e-6)
-    out_band = np.flatnonzero(amp * np.exp(-t / tau) * np.abs(np.sin(w * t)) > band)
+    t = np.arange(0.0, 8.0 * ISO_CUBE_SETTLE[1], 1e-6)
+    out_band = np.flatnonzero(np.abs(ring(t, ISO_CUBE_SETTLE)) > band)
     t_out = t[out_band[-1]] if out_band.size else 0.0
     t_enter = np.sqrt(2.0 * band / LINEAR_ACCELERATION)  # rest-to-rest deceleration
     # the analysis names poses in order of first appearance in the program
@@ -170,8 +178,36 @@ def iso_cube_truth(
             "commanded": poses[k],
             "vAP": vap,
             "dAP": dap,
-            "overshoot": float(amp * np.exp(-t_peak / tau) * np.sin(w * t_peak)),
+            "overshoot": ring_peak(ISO_CUBE_SETTLE),
             "t_stab": float(t_out + t_enter),
+        }
+    return out
+
+
+def iso_cube_corner_truth() -> dict[str, dict[str, Any]]:
+    """Cornering characteristics `iso_cube` injects at the path test's corners, named as
+    the analysis names them (the rectangle's start ``P6``, a test pose after P1–P5; the
+    flown-by corners ``T1``–``T3``), with the `commanded` corner [m].
+
+    `CR` [m]: distance from the corner to the arc that cuts it (zone·tan(φ/4) for a turn
+    by φ); `CO` [m]: largest distance from the second leg after the corner: the larger of
+    the ringing's first peak and the arc's own distance from that leg where it is nearer
+    to it than to the first leg (CR·cos(φ/2), at the arc's middle). Zero at the fine
+    point ``P6``. `zone` [m] and `ringing` (amplitude [m], τ [s], frequency [Hz]): what
+    was injected (None at ``P6``).
+    """
+    rect = iso_cube_poses()[1:]
+    out = {"P6": {"commanded": rect[0], "CR": 0.0, "CO": 0.0, "zone": None, "ringing": None}}
+    for j, (zone, amp) in enumerate(ISO_CUBE_CORNERS, start=1):
+        c = Corner.between(rect[j - 1], rect[j], rect[(j + 1) % 4], zone)
+        ringing = (amp, *ISO_CUBE_CORNER_RING)
+        co = max(ring_peak(ringing), c.round_off * np.cos(c.angle / 2))
+        out[f"T{j}"] = {
+            "commanded": rect[j],
+            "CR": c.round_off,
+            "CO": co,
+            "zone": zone,
+            "ringing": ringing,
         }
     return out
 

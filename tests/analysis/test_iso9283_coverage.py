@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from robtraj.analysis._iso_ci import max_length_interval
 from robtraj.analysis._iso_path import path_statistics
 from robtraj.analysis._quat import quat_multiply
 from robtraj.analysis.iso9283 import pose_statistics
@@ -106,27 +107,70 @@ def test_percentile_bootstrap_under_covers_where_t_does_not(n):
     assert np.mean(hit_pct) < 0.95 - 3 * se, np.mean(hit_pct)
 
 
+ROT_BOW = np.array([4e-4, -3e-4, 2e-4])  # [rad] rotation vector of the bow's orientation error
+
+
 def _path_run(seed: int, passes: int, n_boot: int) -> dict[str, bool]:
     """A path of 20 normal planes: each pass crosses them along the command + a bow
-    b·sin(πf) across the path + N(0, σ²) per plane; its speed is vc·(1 + N(0, 0.02²))."""
+    b·sin(πf) across the path + N(0, σ²) per plane, with the orientation error
+    exp(ROT_BOW·sin(πf) + N(0, ROT_SIGMA²)); its speed is vc·(1 + N(0, 0.02²)). The
+    truths are the maxima over the planes (two planes tie at the top: f = 0.475, 0.525)."""
     rng = np.random.default_rng(seed)
     f = (np.arange(20) + 0.5) / 20
     c = CP + f[:, None] * np.array([0.0, 0.3, 0.0])
     bow = 0.5e-3 * np.sin(np.pi * f)[:, None] * np.array([1.0, 0.0, 0.0])
     x = c + bow + rng.normal(0.0, SIGMA, (passes, 20, 3))
     qc = np.broadcast_to(CQ, (20, 4))
-    q = _quats(rng.normal(0.0, ROT_SIGMA, (passes * 20, 3))).reshape(passes, 20, 4)
+    rot = np.sin(np.pi * f)[:, None] * ROT_BOW + rng.normal(0.0, ROT_SIGMA, (passes, 20, 3))
+    q = _quats(rot.reshape(-1, 3)).reshape(passes, 20, 4)
     vc = 0.2
     v = vc * (1 + 0.02 * rng.normal(size=passes))
     _, ci = path_statistics(x, q, c, qc, v, vc, rng, n_boot)
-    truth = {"AT": 0.5e-3, "RT": SIGMA * RP_PER_SIGMA, "AV": 0.0, "RV": 0.06}
+    top = np.max(np.sin(np.pi * f))
+    # a, b, c are the base-frame rotation vector's components to second order (~1e-7 rad,
+    # 0.2 % of a plane mean's standard error), the single angle its length
+    truth = {
+        "AT": 0.5e-3 * top, "ATa": abs(ROT_BOW[0]) * top, "ATb": abs(ROT_BOW[1]) * top,
+        "ATc": abs(ROT_BOW[2]) * top, "AT_angle": np.linalg.norm(ROT_BOW) * top,
+        "RT": SIGMA * RP_PER_SIGMA, "AV": 0.0, "RV": 0.06,
+    }  # fmt: skip
     return {k: ci[k][0] <= val <= ci[k][1] for k, val in truth.items()}
 
 
 @functools.cache
-def _path_coverage() -> dict[str, float]:
-    hits = [_path_run(5000 + r, 10, 300) for r in range(1000)]
+def _path_coverage(runs: int, n_boot: int) -> dict[str, float]:
+    hits = [_path_run(5000 + r, 10, n_boot) for r in range(runs)]
     return {k: float(np.mean([h[k] for h in hits])) for k in hits[0]}
+
+
+_AT = ("AT", "ATa", "ATb", "ATc", "AT_angle")
+#: profiles of the mean error's length over the 20 planes (× 0.5 mm): the bow's two top
+#: planes tie; f⁸ has one top plane, the next 0.14 mm (3.1 standard errors of a plane's
+#: mean at 5 passes) below; f⁴ has the next one 0.086 mm (1.9 at 5 passes) below
+_PROFILES = {"bow": lambda f: np.sin(np.pi * f), "f8": lambda f: f**8, "f4": lambda f: f**4}
+
+
+def _at_coverage(profile: str, runs: int, passes: int = 10, n_boot: int = 300) -> float:
+    """Coverage of `max_length_interval` (AT) over `runs` draws of `passes` passes."""
+    f = (np.arange(20) + 0.5) / 20
+    mean = 0.5e-3 * _PROFILES[profile](f)[:, None] * np.array([1.0, 0.0, 0.0])
+    truth = np.max(np.linalg.norm(mean, axis=-1))
+    hits = []
+    for r in range(runs):
+        rng = np.random.default_rng(7000 + r)
+        lo, hi = max_length_interval(mean + rng.normal(0.0, SIGMA, (passes, 20, 3)), rng, n_boot)
+        hits.append(lo <= truth <= hi)
+    return float(np.mean(hits))
+
+
+def test_path_accuracy_interval_is_valid_and_exact_with_one_top_plane():
+    """AT = max over planes of |barycentre − command| over 300 runs of 10 passes (SE 1.3 %,
+    ± 3 % ≈ 2.4σ). With one plane on top the interval covers 95 ± 3 %; where two tie it
+    is conservative (at least 92 %; measured 97–99 %). The studentised bootstrap of the
+    maximum it replaces covered 90.4 % on the tie (1000 runs)."""
+    one, tie = _at_coverage("f8", 300), _at_coverage("bow", 300)
+    assert 0.92 <= one <= 0.98, one
+    assert tie >= 0.92, tie
 
 
 @pytest.mark.exhaustive
@@ -134,15 +178,35 @@ def test_path_interval_coverage():
     """1000 runs (SE 0.7 %, ± 2 % ≈ 3σ). AV, RV: 95 ± 2 %. RT is a maximum over planes
     of equal-valued truths here; its simultaneous-interval bound is conservative by
     construction (at least 95 %; measured 97.6 %)."""
-    cov = _path_coverage()
+    cov = _path_coverage(1000, 300)
     assert all(0.93 <= cov[k] <= 0.97 for k in ("AV", "RV")), cov
     assert cov["RT"] >= 0.93, cov
 
 
 @pytest.mark.exhaustive
-@pytest.mark.xfail(strict=True, reason="AT's bootstrap-t interval covers 90.4 % (1000 runs)")
 def test_path_accuracy_interval_coverage():
-    """AT = maximum over planes of |barycentre − command|: the studentised bootstrap
-    under-covers (the maximum of estimates is biased up near a flat top)."""
-    cov = _path_coverage()
-    assert 0.93 <= cov["AT"] <= 0.97, cov
+    """AT (position, a/b/c, single angle) with two planes tied at the top, 1000 runs
+    (SE 0.7 %): the restricted bootstrap (`max_length_interval`) is conservative at a
+    tie, so at least 93 % (3σ below 95 %); AT itself within the target 95 ± 3 %.
+    Measured: AT 97.0 %, ATa 96.7 %, ATb 98.3 %, ATc 98.3 %, AT_angle 97.0 % (a, b, c
+    lie 3–6 standard errors from 0, where more planes compete for the maximum)."""
+    cov = _path_coverage(1000, 300)
+    assert all(cov[k] >= 0.93 for k in _AT), cov
+    assert cov["AT"] <= 0.98, cov
+
+
+@pytest.mark.exhaustive
+@pytest.mark.parametrize("passes", [5, 10, 30])
+def test_path_accuracy_interval_with_one_top_plane(passes):
+    """One plane on top (f⁸), 1000 runs (SE 0.7 %): 95 ± 3 % at 5, 10 and 30 passes (the
+    t/z scaling of the simulated noise carries the uncertainty of each plane's scatter)."""
+    cov = _at_coverage("f8", 1000, passes)
+    assert 0.92 <= cov <= 0.98, cov
+
+
+@pytest.mark.exhaustive
+def test_path_accuracy_interval_near_a_tie_with_few_passes():
+    """A known weakness: with 5 passes and a second plane 1.9 standard errors below the
+    top (f⁴), the restricted means tie planes the truth does not, and the interval
+    covers less than 95 % (measured 91.5 % over 1000 runs). Guarded at 90 %."""
+    assert _at_coverage("f4", 1000, 5) >= 0.90
