@@ -126,7 +126,17 @@ def _covariance_robust(doc: dict, cov: dict | None) -> dict | None:
     clusters = rob.get("clusters", 0)
     if not isinstance(clusters, int) or isinstance(clusters, bool) or clusters < 0:
         raise UserError("covariance_robust.clusters must be a whole number ≥ 0")
-    return {"matrix": m.tolist(), "clusters": clusters}
+    eff = rob.get("effective_clusters")
+    if eff is not None:
+        if not isinstance(eff, list) or len(eff) != n:
+            raise UserError(f"covariance_robust.effective_clusters must list {n} numbers or nulls")
+        eff = [
+            None
+            if x is None
+            else float(_numbers([x], (1,), "covariance_robust.effective_clusters")[0])
+            for x in eff
+        ]
+    return {"matrix": m.tolist(), "clusters": clusters, "effective_clusters": eff}
 
 
 def parse_calibration(doc: Any, name: str = "CALIB.json"):

@@ -19,7 +19,14 @@ from ._poses_io import read_poses, write_poses
 from ._registration import Registration, register_leds
 from ._solve import LeastSquares, Solution, default_solver, normal_at, solve
 from ._static import static_segments
-from ._uncertainty import RCOND, column_scale, covariance, identifiability, robust_covariance
+from ._uncertainty import (
+    RCOND,
+    column_scale,
+    covariance,
+    effective_clusters,
+    identifiability,
+    robust_covariance,
+)
 from ._weighting import (
     LedFeatures,
     get_weighting,
@@ -39,6 +46,7 @@ __all__ = [
     "column_scale",
     "covariance",
     "robust_covariance",
+    "effective_clusters",
     "default_solver",
     "identifiability",
     "normal_at",

@@ -15,6 +15,10 @@ from ..model import Effects
 from ..recording import Pose
 
 
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
 def _se3(wxyz_xyz) -> jaxlie.SE3:
     return jaxlie.SE3(jnp.asarray(wxyz_xyz, jnp.float64))
 
@@ -79,6 +83,9 @@ class CalibrationResult:
     #: (`robtraj.estimate.robust_covariance`), same layout as `covariance`
     covariance_robust: np.ndarray | None = None
     n_clusters: int = 0
+    #: per parameter, the clusters the robust σ effectively rests on
+    #: (`robtraj.estimate.effective_clusters`; its relative error ≈ 1/√(2·G_eff))
+    clusters_effective: np.ndarray | None = None
 
     @property
     def time_offset(self) -> float:
@@ -137,6 +144,9 @@ class CalibrationResult:
             else {
                 "matrix": np.asarray(self.covariance_robust).tolist(),
                 "clusters": self.n_clusters,
+                "effective_clusters": None
+                if self.clusters_effective is None
+                else [_finite_or_none(x) for x in np.asarray(self.clusters_effective)],
             },
             "residual_rms_m": self.residual_rms_m,
             "effects": {k: np.asarray(v).tolist() for k, v in self.effects.items()},
@@ -216,6 +226,13 @@ class CalibrationResult:
                     np.asarray(robust["matrix"], float) if "matrix" in robust else None
                 ),
                 n_clusters=int(robust.get("clusters", 0)),
+                clusters_effective=(
+                    None
+                    if robust.get("effective_clusters") is None
+                    else np.array(
+                        [np.nan if x is None else x for x in robust["effective_clusters"]], float
+                    )
+                ),
             )
         except (KeyError, TypeError, ValueError) as e:
             raise UserError(f"not a robtraj calibration (CALIB.json): {e}") from None

@@ -147,6 +147,24 @@ def robust_covariance(
     return (g - 1) / g * dev.T @ dev
 
 
+def effective_clusters(
+    h: np.ndarray, free: np.ndarray, cluster_h: np.ndarray, t: np.ndarray | None = None
+) -> np.ndarray:
+    """Per parameter, how many clusters the robust σ effectively rests on:
+    ``1 / Σ_g w_g²`` with ``w_g`` cluster g's share of the parameter's variance where the
+    model is right, ``diag(T H⁺ H_g H⁺ Tᵀ)`` normalised (`t` maps the free block to the
+    reported parameters; identity when None). The relative sampling error of the robust
+    σ is about ``1/√(2·G_eff)``: a constellation entry of an LED seen in a few dwells
+    rests on a few clusters however many the recording has. NaN where undetermined."""
+    hp, _ = _pinv(np.asarray(h, float), free)
+    a = hp if t is None else np.asarray(t, float) @ hp
+    part = np.einsum("mi,gij,mj->gm", a, np.asarray(cluster_h, float), a)
+    total = part.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = part / total
+        return np.where(total > 0, 1.0 / np.sum(share**2, 0), np.nan)
+
+
 def _pinv(h: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, int]:
     idx = np.flatnonzero(free)
     d = column_scale(h)

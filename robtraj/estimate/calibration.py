@@ -73,7 +73,7 @@ from ._calib_result import CalibrationResult, _pose_of, _se3, _wxyz_xyz
 from ._next_poses import next_poses
 from ._noise import observation_noise
 from ._solve import normal_at, solve
-from ._uncertainty import covariance, identifiability, robust_covariance
+from ._uncertainty import covariance, effective_clusters, identifiability, robust_covariance
 
 __all__ = [
     "BundleData",
@@ -300,12 +300,17 @@ def fit(
     unused_frame, unused_led = np.nonzero(~used)
     full_res[data.frame[unused_frame], unused_led] = np.nan
     cluster, n_clusters = _clusters(data, bundle.chunks)
+    # the cluster count is static to the kernel: padded so that recordings of one shape
+    # share a compilation; the empty clusters are cut before the jackknife
+    padded = -(-n_clusters // 64) * 64
     h, _, chi2, cluster_h, scores = (
         np.asarray(x)
         for x in bundle_normal_clustered(
-            jnp.zeros(len(st.names_theta)), bundle, jnp.asarray(cluster), n_clusters
+            jnp.zeros(len(st.names_theta)), bundle, jnp.asarray(cluster), padded
         )
     )
+    keep = np.r_[np.arange(n_clusters), np.arange(padded, cluster_h.shape[0])]
+    cluster_h, scores = cluster_h[keep], scores[keep]
     chi2 = float(chi2)
     n_res = 3 * int(used.sum()) + (6 * int(bundle.probe.probed.shape[0]) if bundle.probe else 0)
     cov_unit, rank = covariance(h, free_mask)
@@ -316,6 +321,7 @@ def fit(
     t[q:, q:] = basis
     cov_phi = t @ (s2 * cov_unit) @ t.T
     cov_robust = t @ robust_covariance(h, free_mask, cluster_h, scores) @ t.T
+    g_eff = effective_clusters(h, free_mask, cluster_h, t)
     del cluster_h, scores
     phi_names = st.names_theta[:q] + [
         f"constellation[LED {int(i)}].{c}" for i in data.led_ids for c in ("x", "y", "z")
@@ -376,6 +382,7 @@ def fit(
         parameter_names=tuple(phi_names),
         covariance=cov_phi,
         covariance_robust=cov_robust,
+        clusters_effective=g_eff,
         n_clusters=int(n_clusters + (bundle.probe.probed.shape[0] if bundle.probe else 0)),
         residual_rms_m=float(np.sqrt(np.mean(sq[used]))),
         noise_sigma_m=float(np.sqrt(np.mean(sq[used]) / 3.0)),

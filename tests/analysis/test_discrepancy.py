@@ -1,8 +1,9 @@
 """Discrepancy discovery on recordings with hidden effects (truth stripped).
 
 All recordings share one shape (calibration scenario, 24 s at 25 Hz) so that the fits
-compile once per set of effects. The full matrix (every effect at a realistic and at a
-small magnitude, two effects together) is marked `exhaustive` and run on demand:
+compile once per set of effects. One effect per family runs in CI; the full matrix (every
+effect at a realistic and at a small magnitude, two effects together) is marked
+`exhaustive` and run on demand:
 ``pytest -m exhaustive tests/analysis/test_discrepancy.py``.
 """
 
@@ -75,7 +76,9 @@ REALISTIC = {
     "joint_compliance": 1.5e-6,
     "backlash": [0.0, 2e-4, 2e-4, 0.0, 0.0, 0.0],
     "led_angle_bias": 200e-6,
-    "tracker_scale": 1e-4,
+    # a scale is mostly absorbed by camera←base and the constellation: 1e-4 leaves a gap of
+    # 8 µm on these 24 s, below its floor (23 µm), and is rightly not named
+    "tracker_scale": 5e-4,
     "thermal_drift": [1e-4, 0.0, -1e-4],
 }
 
@@ -91,9 +94,19 @@ def test_hidden_compliance_is_named_with_its_value_and_the_gap_closes():
     assert doc["steps"][0]["effect"] == "joint_compliance"
 
 
-@pytest.mark.exhaustive
-@pytest.mark.parametrize("scale", [1.0, "small"])
-@pytest.mark.parametrize("effect", list(REALISTIC))
+# one effect per family runs in CI (clock, joint geometry, tracker, LED; the joint
+# non-geometric family is the compliance test above); the rest of the matrix on demand
+CI_FAMILIES = ("time_offset", "link_length", "tracker_scale", "led_angle_bias")
+
+
+@pytest.mark.parametrize(
+    "effect, scale",
+    [
+        pytest.param(e, s, marks=() if (s == 1.0 and e in CI_FAMILIES) else pytest.mark.exhaustive)
+        for s in (1.0, "small")
+        for e in REALISTIC
+    ],
+)
 def test_every_effect_is_named(effect, scale):
     value = np.asarray(REALISTIC[effect], float)
     rec, _ = _hidden({effect: value})

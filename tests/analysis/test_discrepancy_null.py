@@ -1,9 +1,10 @@
 """Discrepancy discovery when the library has nothing to name: no hidden effect (false
-positives over 20 seeds) and an effect outside the library (reported as unexplained)."""
+positives over 20 seeds, 40 on demand) and an effect outside the library (reported as unexplained)."""
 
 import json
 
 import numpy as np
+import pytest
 from test_discrepancy import _hidden
 
 from robtraj import write_recording
@@ -11,15 +12,19 @@ from robtraj.analysis.discrepancy import discover
 from robtraj.cli import main
 
 
-def test_nothing_hidden_nothing_named_and_the_gap_within_its_floor_over_20_seeds():
-    """Angle- and distance-dependent noise, no effect: at most 1 of 20 seeds names
-    anything or leaves a gap above its floor (the floor is two standard errors: 2.3 % of
-    seeds exceed it by chance)."""
-    results = [discover(_hidden({}, seed=s)[0]) for s in range(20)]
+@pytest.mark.parametrize(
+    "seeds, allowed",
+    [(20, 1), pytest.param(40, 2, marks=pytest.mark.exhaustive)],
+)
+def test_nothing_hidden_nothing_named_and_the_gap_within_its_floor(seeds, allowed):
+    """Angle- and distance-dependent noise, no effect: nothing named and the gap within
+    its floor in ≥ 95 % of seeds (the floor is two standard errors: 2.3 % of seeds exceed
+    it by chance); 20 seeds in CI, 40 on demand."""
+    results = [discover(_hidden({}, seed=s)[0]) for s in range(seeds)]
     named = [r.named for r in results]
     above = [(r.gap_after_m, r.gap_floor_m) for r in results if r.gap_after_m > r.gap_floor_m]
-    assert sum(bool(n) for n in named) <= 1, named
-    assert len(above) <= 1, above
+    assert sum(bool(n) for n in named) <= allowed, named
+    assert len(above) <= allowed, above
 
 
 def _periodic_encoder_error(seed=3):

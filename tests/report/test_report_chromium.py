@@ -139,7 +139,8 @@ def test_demo_report(demo):
     assert "σ" in text and "the calibration has no covariance" in text
     assert "the standard asks for 30" in text  # 3 cycles per pose in 30 s
     assert "Left out" not in text
-    assert len(lay["images"]) == 5
+    assert "Noise of the recording" in text  # the noise model, figure and table
+    assert len(lay["images"]) == 6
 
 
 @needs_chromium
@@ -150,7 +151,12 @@ def test_optotrak_report(optotrak):
     text = optotrak.read_text()
     assert "no robot log" in text and "camera (tracker) frame" in text
     assert text.count("Left out:") == 3  # calibration, ISO 9283, path deviation
-    assert {i["src"] for i in lay["images"]} == {"speed.png", "leds.png", "pose_quality.png"}
+    assert {i["src"] for i in lay["images"]} == {
+        "speed.png",
+        "leds.png",
+        "noise_model.png",  # the tool's rigid pairs give the noise without a robot
+        "pose_quality.png",
+    }
 
 
 @needs_chromium
