@@ -35,15 +35,32 @@ def _periodic_encoder_error(seed=3):
     return rec.replace(robot=rec.robot.__class__(rec.robot.time, q, rec.robot.model, rec.robot.dh))
 
 
-def test_an_effect_outside_the_library_is_reported_as_unexplained_with_its_joint():
-    res = discover(_periodic_encoder_error())
+@pytest.fixture(scope="module")
+def encoder_error():
+    return discover(_periodic_encoder_error())
+
+
+def test_an_effect_outside_the_library_is_reported_as_unexplained_with_its_joint(encoder_error):
+    res = encoder_error
     assert res.unexplained
     assert "joint 2" in res.unexplained_where[:3], res.unexplained_where
 
 
-def test_cli_writes_the_design_json_and_the_report_and_refuses_to_overwrite(tmp_path, capsys):
+def test_cli_writes_the_design_json_and_the_report_and_refuses_to_overwrite(
+    tmp_path, capsys, monkeypatch, encoder_error
+):
+    """The command around the workflow: input checks, what it prints, the JSON, the
+    figures, no overwriting. The workflow's result on this recording is the one tested
+    above; the command gets it without a second search."""
     path = tmp_path / "rec.h5"
     write_recording(_periodic_encoder_error(), path)
+    seen = []
+
+    def search(rec, progress=None):
+        seen.append(rec.n_frames)
+        return encoder_error
+
+    monkeypatch.setattr("robtraj.analysis.discrepancy.discover", search)
     out, report = tmp_path / "disc.json", tmp_path / "report"
     assert main(["discrepancy", str(path), "--json", str(out), "--report", str(report)]) == 0
     doc = json.loads(out.read_text())
@@ -51,6 +68,7 @@ def test_cli_writes_the_design_json_and_the_report_and_refuses_to_overwrite(tmp_
     assert doc["unexplained"] and doc["gap_after_m"] < doc["gap_before_m"]
     for step in doc["steps"]:
         assert {"effect", "parameters", "gap_after_m", "score"} <= set(step)
+    assert seen == [_periodic_encoder_error().n_frames]  # the recording read from the file
     assert (report / "discrepancy_gap.png").stat().st_size > 10_000
     assert (report / "discrepancy_structure.png").stat().st_size > 10_000
     text = capsys.readouterr().out
