@@ -6,12 +6,13 @@ from typing import Literal
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float, Int
 
+from ._chunked import map_chunks
 from ._windowed import windowed_moments, windowed_range_is_zero
 
 # Frames per chunk of the kernel (plus a halo of half a window on each side): the
-# (frames, leds, leds) pair distances of one chunk stay a few MB, in cache.
+# (pairs, frames) distances of one chunk stay a few MB, in cache.
 _CHUNK = 2048
 
 
@@ -59,10 +60,10 @@ def led_variance(
     Precision: float64 agrees with a direct two-pass evaluation to ~1e-12 relative on
     0.1 m constellations with 15 µm noise (the rounding of the distances themselves,
     1 ulp of 0.1 m against ~20 µm noise, sets that floor). For the paper variant ``d_t``
-    is split into a piecewise-constant part (the sum of per-pair reference distances over the
-    partners seen) and a small remainder; where the partner set does not change within
-    the window the variance is that of the remainder, so the jumps of ``d_t`` elsewhere
-    cost no precision. In float32 the positions themselves carry ~0.1 µm rounding at
+    is split into a piecewise-constant part (the sum of per-pair reference distances
+    over the partners seen, exact) and a small remainder; where the partner set does not
+    change within the window the variance is that of the remainder, so the jumps of
+    ``d_t`` elsewhere cost no precision. In float32 the positions themselves carry ~0.1 µm rounding at
     1.5 m, so the variance of ~20 µm noise is good to about 1e-2 relative.
     """
     if positions.ndim != 3 or positions.shape[-1] != 3:
@@ -80,25 +81,21 @@ def led_variance(
     return _led_variance(positions, int(window) // 2, variant, int(min_count))
 
 
-def _chunks(x: Array, half_width: int, chunk: int) -> Array:
-    """(frames, ...) -> (chunks, halo + chunk + halo, ...), NaN-padded beyond the ends."""
-    n = x.shape[0]
-    nc = -(-n // chunk)
-    tail = [(0, 0)] * (x.ndim - 1)
-    main = jnp.pad(x, [(0, nc * chunk - n)] + tail, constant_values=jnp.nan)
-    main = main.reshape(nc, chunk, *x.shape[1:])
-    h = half_width
-    if h == 0:
-        return main
-    pad = jnp.full((1, h, *x.shape[1:]), jnp.nan, x.dtype)
-    left = jnp.concatenate([pad, main[:-1, chunk - h :]], axis=0)
-    right = jnp.concatenate([main[1:, :h], pad], axis=0)
-    return jnp.concatenate([left, main, right], axis=1)
+def _pair_index(n_leds: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """LED pairs (a, a + k) ordered by offset k = 1 .. leds-1, then by a, as indices
+    ``pair_a``, ``pair_b``; and for each LED the pairs it is in, by partner:
+    ``(leds, leds - 1)``."""
+    pair_a = np.concatenate([np.arange(n_leds - k) for k in range(1, n_leds)])
+    pair_b = np.concatenate([np.arange(k, n_leds) for k in range(1, n_leds)])
+    partner = np.zeros((n_leds, n_leds - 1), np.int32)
+    for a in range(n_leds):
+        partner[a] = np.flatnonzero((pair_a == a) | (pair_b == a))
+    return pair_a, pair_b, partner
 
 
 def _pair_distances(x: Array, seen: Array) -> tuple[Array, Array]:
-    """Distances (frames, pairs) and where both LEDs are seen, for the LED pairs
-    (a, a + k) ordered by offset k = 1 .. leds-1, then by a.
+    """Distances (frames, pairs) and where both LEDs are seen, for the pairs of
+    `_pair_index`.
 
     Built from shifted slices (LED a against LED a + k), not gathers: XLA's gather is
     slow on CPU.
@@ -116,81 +113,101 @@ def _pair_distances(x: Array, seen: Array) -> tuple[Array, Array]:
     return jnp.where(both, jnp.sqrt(jnp.where(both, sq, 1.0)), 0.0), both
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2, 3))
-def _led_variance(positions: Array, half_width: int, variant: str, min_count: int) -> Array:
-    dtype = positions.dtype
-    n, n_leds, _ = positions.shape
-    h = half_width
-    chunk = max(_CHUNK, h)
+def _paper_sums(
+    xt: Float[Array, "3 leds frames"],
+) -> tuple[Bool[Array, "leds frames"], Array, Array, Int[Array, "leds frames"]]:
+    """Paper eq. 4 for one extended chunk, frames last.
 
-    # pairs (a, a + k) in the order of `_pair_distances`; incidence (pairs, leds)
-    pair_a = np.concatenate([np.arange(n_leds - k) for k in range(1, n_leds)])
-    pair_b = np.concatenate([np.arange(k, n_leds) for k in range(1, n_leds)])
+    `xt` is ``(3, leds, frames)``. Returns ``(leds, frames)`` arrays: where the LED is
+    seen; ``e`` and ``r`` with ``d = e + r`` the sum of the distances to the other LEDs
+    seen, ``r`` the sum of per-pair reference distances over those partners (piecewise
+    constant, exact) and ``e`` the small remainder; the number of partners seen.
+
+    Each pair's distance is computed once (pairs as rows, frames along the vector
+    lanes) and added to both of its LEDs by gathering whole rows (contiguous, unlike
+    the element gathers that are slow on CPU). The reference distance of a
+    pair is its distance at the first frame of the chunk where both are seen, rounded
+    to a grid coarse enough that any sum of at most `leds` of them is exact: ``r`` is
+    then exactly constant wherever the partner set is (and computed by a matmul).
+    """
+    _, n_leds, _ = xt.shape
+    dtype = xt.dtype
+    seen = jnp.all(jnp.isfinite(xt), axis=0)
+    x = jnp.where(seen, xt, 0.0)
+    pair_a, pair_b, partner = _pair_index(n_leds)
+    both = seen[pair_a] & seen[pair_b]
+    diff = [x[i][pair_a] - x[i][pair_b] for i in range(3)]
+    sq = (diff[0] * diff[0] + diff[1] * diff[1]) + diff[2] * diff[2]
+
+    first = jnp.argmax(both, axis=1)
+    at_first = x[:, pair_a, first] - x[:, pair_b, first]
+    ref = jnp.sqrt(jnp.sum(at_first * at_first, axis=0))
+    bits = jnp.finfo(dtype).nmant - int(np.ceil(np.log2(n_leds))) - 1
+    _, exponent = jnp.frexp(jnp.max(ref))
+    grid = jnp.ldexp(jnp.ones((), dtype), exponent - bits)
+    ref = jax.lax.stop_gradient(jnp.round(ref / grid) * grid)
+
+    # double-where: sqrt has an infinite derivative at 0 (unseen partners).
+    dev = jnp.where(both, jnp.sqrt(jnp.where(both, sq, 1.0)) - ref[:, None], 0.0)
+    e = dev[partner[:, 0]]
+    for j in range(1, n_leds - 1):
+        e = e + dev[partner[:, j]]
+    ref_matrix = jnp.zeros((n_leds, n_leds), dtype).at[pair_a, pair_b].set(ref)
+    seen_f = seen.astype(dtype)
+    r = seen_f * jnp.matmul(ref_matrix + ref_matrix.T, seen_f, precision=jax.lax.Precision.HIGHEST)
+    k = seen * (jnp.sum(seen, axis=0, keepdims=True) - 1)
+    return seen, e, r, k
+
+
+def _paper_chunk(sums: tuple[Array, ...], h: int, min_count: int) -> Array:
+    """Paper variance (eq. 3-5) of an extended chunk's own frames, ``(frames, leds)``,
+    from its `_paper_sums`."""
+    seen, e, r, k = (v.T for v in sums)
+    n_leds = seen.shape[1]
+    ok = seen & (k > 0)
+    d = e + r
+    count, _, m2 = windowed_moments(jnp.concatenate([d, e], axis=1), jnp.tile(ok, (1, 2)), h)
+    count, m2_d, m2_e = count[:, :n_leds], m2[:, :n_leds], m2[:, n_leds:]
+    # Where the partner set (hence r) is constant over the window, var(d) = var(e)
+    # exactly and var(e) has no cancellation; elsewhere the jump dominates var(d).
+    constant = windowed_range_is_zero(r, ok, h)
+    m2 = jnp.where(constant, m2_e, m2_d)
+    # paper eq. 3 and 5: population variance over the valid window frames
+    var = m2 / jnp.where(count > 0, count, 1.0)
+    out = jnp.where(seen & (count >= min_count), var, jnp.nan)
+    return out[h : out.shape[0] - h]
+
+
+def _pairwise_chunk(xc: Float[Array, "frames leds 3"], h: int, min_count: int) -> Array:
+    """Pairwise variance of an extended chunk's own frames, ``(frames, leds)``."""
+    dtype = xc.dtype
+    n_leds = xc.shape[1]
+    seen = jnp.all(jnp.isfinite(xc), axis=-1)
+    x = jnp.where(seen[..., None], xc, 0.0)
+    dist, both = _pair_distances(x, seen)
+    count, _, m2 = windowed_moments(dist, both, h)
+    use = count >= min_count
+    var = jnp.where(use, m2 / jnp.where(use, count, 1.0), 0.0)
+    # For each LED the sum over the pairs it is in, as one matmul (exact: at most
+    # leds - 1 non-zero terms; HIGHEST keeps float32 out of reduced-precision GPU
+    # matmuls). XLA's scatter is slow on CPU.
+    pair_a, pair_b, _ = _pair_index(n_leds)
     leds = np.arange(n_leds)
     incidence = jnp.asarray((pair_a[:, None] == leds) | (pair_b[:, None] == leds), dtype)
+    total, n_use = jnp.matmul(
+        jnp.stack([var, use.astype(dtype)]), incidence, precision=jax.lax.Precision.HIGHEST
+    )
+    mean = total / jnp.where(n_use > 0, n_use, 1.0)
+    out = jnp.where(seen & (n_use > 0), mean, jnp.nan)
+    return out[h : out.shape[0] - h]
 
-    def to_leds(v):
-        """(..., pairs) -> (..., leds): for each LED the sum over the pairs it is in, as
-        one matmul (exact: at most leds - 1 non-zero terms; HIGHEST keeps float32 out of
-        reduced-precision GPU matmuls). XLA's scatter is slow on CPU."""
-        return jnp.matmul(v, incidence, precision=jax.lax.Precision.HIGHEST)
 
-    def prepare(x):
-        seen = jnp.all(jnp.isfinite(x), axis=-1)
-        return jnp.where(seen[..., None], x, 0.0), seen
-
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _led_variance(positions: Array, half_width: int, variant: str, min_count: int) -> Array:
+    h = half_width
+    chunk = max(_CHUNK, h)
     if variant == "paper":
-
-        def paper_chunk(xc):
-            x, seen = prepare(xc)
-            # All (a, b) pairs as (frames, leds, leds) broadcasts reduced over b: one
-            # fused loop, no gathers (twice the distances of a < b, still cheaper).
-            both = seen[:, :, None] & seen[:, None, :] & ~np.eye(n_leds, dtype=bool)
-            sq = 0.0
-            for i in range(3):
-                diff = x[:, :, None, i] - x[:, None, :, i]
-                sq = sq + diff * diff
-            # double-where: sqrt has an infinite derivative at 0 (unseen partners).
-            dist = jnp.where(both, jnp.sqrt(jnp.where(both, sq, 1.0)), 0.0)
-            # Per-pair reference distance ref_ab: d = e + r with r = Σ_b ref_ab piecewise
-            # constant (it changes only when partners come and go) and e small. ref_ab is
-            # the distance at the first frame of the chunk (halo included) where both are
-            # seen: every window lies inside one chunk, and the chunks do not depend on
-            # how the frames are split across devices.
-            first = jnp.argmax(both, axis=0)
-            ref = jax.lax.stop_gradient(jnp.take_along_axis(dist, first[None], axis=0))
-            # paper eq. 4: d = sum over the partners seen at t; also e, r, partner count
-            d = jnp.sum(dist, axis=2)
-            e = jnp.sum(jnp.where(both, dist - ref, 0.0), axis=2)
-            r = jnp.sum(jnp.where(both, ref, 0.0), axis=2)
-            k = jnp.sum(both, axis=2)
-            ok = seen & (k > 0)
-            count, _, m2 = windowed_moments(
-                jnp.concatenate([d, e], axis=1), jnp.tile(ok, (1, 2)), h
-            )
-            count, m2_d, m2_e = count[:, :n_leds], m2[:, :n_leds], m2[:, n_leds:]
-            # Where the partner set (hence r) is constant over the window, var(d) =
-            # var(e) exactly and var(e) has no cancellation; elsewhere the jump
-            # dominates var(d).
-            constant = windowed_range_is_zero(r, ok, h)
-            m2 = jnp.where(constant, m2_e, m2_d)
-            # paper eq. 3 and 5: population variance over the valid window frames
-            var = m2 / jnp.where(count > 0, count, 1.0)
-            out = jnp.where(seen & (count >= min_count), var, jnp.nan)
-            return out[h : h + chunk]
-
-        body = paper_chunk
-    else:
-
-        def body(xc):
-            x, seen = prepare(xc)
-            dist, both = _pair_distances(x, seen)
-            count, _, m2 = windowed_moments(dist, both, h)
-            use = count >= min_count
-            var = jnp.where(use, m2 / jnp.where(use, count, 1.0), 0.0)
-            total, n_use = to_leds(jnp.stack([var, use.astype(dtype)]))
-            mean = total / jnp.where(n_use > 0, n_use, 1.0)
-            return jnp.where(seen & (n_use > 0), mean, jnp.nan)[h : h + chunk]
-
-    out = jax.lax.map(body, _chunks(positions, h, chunk))
-    return out.reshape(-1, n_leds)[:n].astype(dtype)
+        body = functools.partial(_paper_chunk, h=h, min_count=min_count)
+        return map_chunks((_paper_sums, body), positions, chunk, h, frames_last=True)
+    body = functools.partial(_pairwise_chunk, h=h, min_count=min_count)
+    return map_chunks(body, positions, chunk, h)
