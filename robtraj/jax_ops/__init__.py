@@ -16,6 +16,7 @@ from ._quaternion import (
     quat_multiply as quat_multiply,
     quat_rotate as quat_rotate,
     quat_to_matrix as quat_to_matrix,
+    rotation_rows as rotation_rows,
 )
 from ._rotation_angle import rotation_angle as rotation_angle
 from ._slerp import slerp as slerp

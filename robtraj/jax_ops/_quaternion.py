@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 from jaxtyping import Array, Float
 
 
@@ -49,8 +50,9 @@ def quat_to_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
-def rotation_rows(w: Array, x: Array, y: Array, z: Array) -> list[list[Array]]:
-    """Rotation matrix entries ``R[a][b]`` of unit quaternions given as separate arrays."""
+def rotation_rows(w: ArrayLike, x: ArrayLike, y: ArrayLike, z: ArrayLike) -> list[list[ArrayLike]]:
+    """Rotation matrix entries ``R[a][b]`` of unit quaternions given as separate arrays
+    (jax or numpy: plain arithmetic, no compilation for numpy inputs)."""
     return [
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
