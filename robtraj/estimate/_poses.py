@@ -15,6 +15,7 @@ from .._errors import UserError
 from .._progress import progress_bar
 from ..jax_ops import (
     led_variance,
+    led_variances,
     matrix_to_quat,
     quat_conjugate,
     quat_multiply,
@@ -101,30 +102,38 @@ def _over_chunks(n: int, size: int, prepare: Callable, compute: Callable, collec
         collect(*pending)
 
 
-@functools.partial(jax.jit, static_argnames=("window", "variant"))
-def _variance_chunk(x: jax.Array, window: int, variant: str) -> jax.Array:
+@functools.partial(jax.jit, static_argnames=("window", "variants"))
+def _variance_chunk(x: jax.Array, window: int, variants: tuple[str, ...]) -> jax.Array:
     h = window // 2
-    return led_variance(x, window, variant=variant)[h : x.shape[0] - h]
+    return jnp.stack(led_variances(x, window, variants=variants))[:, h : x.shape[0] - h]
 
 
 def chunked_led_variance(
     positions: np.ndarray, window: int, variant: str, chunk: int = CHUNK
 ) -> np.ndarray:
     """`led_variance` over a whole recording in chunks with a halo of half a window."""
+    (out,) = chunked_led_variances(positions, window, (variant,), chunk)
+    return out
+
+
+def chunked_led_variances(
+    positions: np.ndarray, window: int, variants: tuple[str, ...], chunk: int = CHUNK
+) -> tuple[np.ndarray, ...]:
+    """`led_variances` (several variants, one pass) over a whole recording in chunks."""
     n = positions.shape[0]
     h = window // 2
     size = _chunk_length(n, chunk)
-    out = np.empty(positions.shape[:2])
+    out = np.empty((len(variants), *positions.shape[:2]))
 
     def prepare(a):
         return (jax.device_put(_slab(positions, a, size, h, np.nan)),)
 
     def collect(a, v):
         b = min(n, a + size)
-        out[a:b] = np.asarray(v)[: b - a]
+        out[:, a:b] = np.asarray(v)[:, : b - a]
 
-    _over_chunks(n, size, prepare, lambda x: _variance_chunk(x, window, variant), collect)
-    return out
+    _over_chunks(n, size, prepare, lambda x: _variance_chunk(x, window, variants), collect)
+    return tuple(out)
 
 
 def led_emission_angles(position, quaternion_wxyz, constellation, normals):
@@ -193,8 +202,9 @@ def fit_poses(
 
 
 @functools.partial(jax.jit, static_argnames=("weighting", "params", "window"))
-def _poses_chunk(model, x_halo, usable, variance, *, weighting, params, window):
-    """Pairwise variance (if the scheme needs it), weights and poses of one chunk.
+def _poses_chunk(model, x_halo, usable, variance, pairwise, *, weighting, params, window):
+    """Pairwise variance (if the scheme needs it and `pairwise` is None), weights and
+    poses of one chunk.
 
     `x_halo` holds the chunk's positions with half a window on each side; `variance`
     the paper variance of the chunk's frames (NaN where the scheme does not need it).
@@ -202,10 +212,11 @@ def _poses_chunk(model, x_halo, usable, variance, *, weighting, params, window):
     h = window // 2
     x = x_halo[h : x_halo.shape[0] - h]
     seen = jnp.all(jnp.isfinite(x), axis=-1) & usable[None]
-    if "pairwise_variance" in weighting_needs(weighting):
-        pairwise = led_variance(x_halo, window, variant="pairwise")[h : x_halo.shape[0] - h]
-    else:
-        pairwise = jnp.full(seen.shape, jnp.nan, x.dtype)
+    if pairwise is None:
+        if "pairwise_variance" in weighting_needs(weighting):
+            pairwise = led_variance(x_halo, window, variant="pairwise")[h : x_halo.shape[0] - h]
+        else:
+            pairwise = jnp.full(seen.shape, jnp.nan, x.dtype)
     features = LedFeatures(
         visible=seen,
         variance=variance,
@@ -227,10 +238,11 @@ def fused_poses(
     window: int,
     chunk: int = CHUNK,
     advance: Callable = lambda n=1: None,
+    pairwise: np.ndarray | None = None,
 ):
     """Poses of a whole recording for a scheme that needs no previous fit, as one
-    jit-compiled kernel per chunk (pairwise variance, weights, Procrustes) run as a
-    pipeline over the chunks → numpy arrays of a RigidFit."""
+    jit-compiled kernel per chunk (pairwise variance unless given, weights, Procrustes)
+    run as a pipeline over the chunks → numpy arrays of a RigidFit."""
     n = positions.shape[0]
     h = window // 2
     size = _chunk_length(n, chunk)
@@ -243,14 +255,16 @@ def fused_poses(
         return (
             jax.device_put(_slab(positions, a, size, h, np.nan)),
             jax.device_put(_slab(var, a, size, 0, np.nan)),
+            None if pairwise is None else jax.device_put(_slab(pairwise, a, size, 0, np.nan)),
         )
 
-    def compute(x, v):
+    def compute(x, v, pw):
         return _poses_chunk(
             model,
             x,
             usable_j,
             v,
+            pw,
             weighting=weighting,
             params=tuple(sorted(params.items())),
             window=window,
@@ -313,19 +327,16 @@ def estimate_poses(
     notes = []
     iterative = bool(needs & {"residual", "emission_angle"})
     registering = constellation is None and register and reference is not None
-    variance = pairwise = None
-    with progress_bar("LED variance", 2 * n, progress) as advance:
-        if registering or "variance" in needs:
-            variance = chunked_led_variance(positions, window, "paper")
+    # every variance the scheme and registration need, in one pass over the pair distances
+    variants = (("paper",) if registering or "variance" in needs else ()) + (
+        ("pairwise",) if "pairwise_variance" in needs else ()
+    )
+    with progress_bar("LED variance", n, progress) as advance:
+        found = dict(
+            zip(variants, chunked_led_variances(positions, window, variants) if variants else ())
+        )
         advance(n)
-        # non-iterative schemes get the pairwise variance inside the fused pose kernel
-        if iterative:
-            pairwise = (
-                chunked_led_variance(positions, window, "pairwise")
-                if "pairwise_variance" in needs
-                else np.full((n, m), np.nan)
-            )
-        advance(n)
+    variance, pairwise = found.get("paper"), found.get("pairwise")
 
     registration = None
     if constellation is not None:
@@ -364,12 +375,22 @@ def estimate_poses(
     if not iterative:
         with progress_bar("poses", n, progress) as advance:
             fit = fused_poses(
-                const0, positions, usable, variance, weighting, params, window, advance=advance
+                const0,
+                positions,
+                usable,
+                variance,
+                weighting,
+                params,
+                window,
+                advance=advance,
+                pairwise=pairwise,
             )
         return _estimate(rec, fit, ids, const, source, registration, weighting, window, notes)
     seen_used = seen & usable[None]
     if variance is None:
         variance = np.full((n, m), np.nan)
+    if pairwise is None:
+        pairwise = np.full((n, m), np.nan)
     features = LedFeatures(
         visible=jnp.asarray(seen_used),
         variance=jnp.asarray(variance),

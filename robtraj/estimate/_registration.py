@@ -17,7 +17,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
-from ..jax_ops import quat_to_matrix, weighted_procrustes
+from ..jax_ops import rotation_rows, weighted_procrustes
+
+# frames per Procrustes call: every segment is fitted by the same compiled kernel
+_BLOCK = 4096
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,11 +110,14 @@ def register_leds(
     tri = _frames_from_three(positions[best][:, ref])
     tri_mean = tri.mean(0)
     if nominal is not None:
-        fit = weighted_procrustes(
-            jnp.asarray(tri_mean), jnp.asarray(nominal[ref][None]), jnp.ones((1, 3))
-        )
-        r = _quat_matrix(np.asarray(fit.quaternion_wxyz))[0]
-        ref_pos = tri_mean @ r.T + np.asarray(fit.position[0])
+        # as one frame of all M LEDs (the others weight 0): the segments' kernel
+        model = np.zeros((m, 3))
+        model[ref] = tri_mean
+        weights = np.zeros((1, m))
+        weights[0, ref] = 1.0
+        fit = _fit(model, np.asarray(nominal, np.float64)[None], weights)
+        r = _quat_matrix(fit["quaternion_wxyz"])[0]
+        ref_pos = tri_mean @ r.T + fit["position"][0]
         gauge = "reference LEDs fitted to the nominal constellation (nominal TCP)"
     else:
         ref_pos = tri_mean
@@ -150,16 +156,12 @@ def register_leds(
                 w = np.where(
                     np.isfinite(w) & (w > 0), w, np.where(seen[fr] & usable[None], 1.0, 0.0)
                 )
-                fit = weighted_procrustes(
-                    jnp.asarray(np.nan_to_num(current)),
-                    jnp.asarray(positions[fr]),
-                    jnp.asarray(w),
-                )
-                valid = np.asarray(fit.valid)
+                fit = _fit(np.nan_to_num(current), positions[fr], w)
+                valid = fit["valid"]
                 if not valid.any():
                     continue
-                rmat = _quat_matrix(np.asarray(fit.quaternion_wxyz)[valid])
-                t = np.asarray(fit.position)[valid]
+                rmat = _quat_matrix(fit["quaternion_wxyz"][valid])
+                t = fit["position"][valid]
                 y = positions[fr][valid]  # (F, M, 3)
                 local = np.einsum("fji,fmj->fmi", rmat, y - t[:, None, :])
                 target = ~frozen if p > 0 else ~usable
@@ -194,6 +196,24 @@ def register_leds(
     return Registration(led_ids, pos, unc, count.astype(np.int64), reasons, gauge)
 
 
+def _fit(model: np.ndarray, measured: np.ndarray, weights: np.ndarray) -> dict[str, np.ndarray]:
+    """`weighted_procrustes` as numpy arrays, over blocks of `_BLOCK` frames padded in
+    numpy (weight 0): one compiled kernel for any number of frames."""
+    n = measured.shape[0]
+    parts = []
+    for a in range(0, n, _BLOCK):
+        k = min(_BLOCK, n - a)
+        y = np.zeros((_BLOCK, *measured.shape[1:]))
+        w = np.zeros((_BLOCK, weights.shape[1]))
+        y[:k], w[:k] = measured[a : a + k], weights[a : a + k]
+        fit = weighted_procrustes(jnp.asarray(model), jnp.asarray(y), jnp.asarray(w))
+        parts.append(
+            {f: np.asarray(getattr(fit, f))[:k] for f in ("quaternion_wxyz", "position", "valid")}
+        )
+    return {f: np.concatenate([p[f] for p in parts]) for f in parts[0]}
+
+
 def _quat_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices `(F, 3, 3)` of unit quaternions `(F, 4)` (w, x, y, z), numpy."""
-    return np.asarray(quat_to_matrix(jnp.asarray(q)))
+    rows = rotation_rows(*np.moveaxis(np.asarray(q, np.float64), -1, 0))
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)

@@ -4,7 +4,7 @@ Dtype-generic (float32 works, e.g. on GPU); accept frame-sharded arrays. Imports
 nothing else from robtraj. Quaternions are w, x, y, z.
 """
 
-from ._led_variance import led_variance as led_variance
+from ._led_variance import led_variance as led_variance, led_variances as led_variances
 from ._procrustes import (
     RigidFit as RigidFit,
     collinear_threshold as collinear_threshold,
@@ -16,6 +16,7 @@ from ._quaternion import (
     quat_multiply as quat_multiply,
     quat_rotate as quat_rotate,
     quat_to_matrix as quat_to_matrix,
+    rotation_rows as rotation_rows,
 )
 from ._rotation_angle import rotation_angle as rotation_angle
 from ._slerp import slerp as slerp

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._quaternion import quat_to_matrix
+from ._quaternion import rotation_rows
 
 
 class RigidFit(eqx.Module):
@@ -216,9 +216,14 @@ def _fit_block(model: Array, measured: Array, weights: Array) -> RigidFit:
 
     q = _top_eigenvector(horn, lam)
     sign = jnp.where(q[0] < 0, -1.0, 1.0)  # convention w >= 0
-    quat = jnp.stack([sign * qi for qi in q], axis=-1)
-    r = quat_to_matrix(quat)  # (frames, 3, 3)
-    pos = y_bar - jnp.sum(r * p_bar[:, None, :], axis=-1)
+    q = [sign * qi for qi in q]
+    quat = jnp.stack(q, axis=-1)
+    # rotation entries as separate arrays: XLA fuses them into the translation and
+    # residual passes (a stacked (frames, 3, 3) matrix here costs ~2x the kernel on CPU)
+    r = rotation_rows(*q)
+    t = [y_bar[:, a] - sum(r[a][b] * p_bar[:, b] for b in range(3)) for a in range(3)]
+    r = jnp.stack([jnp.stack(row, axis=-1) for row in r], axis=-2)  # (frames, 3, 3)
+    pos = jnp.stack(t, axis=-1)
     res = y - rotated_model(r) - pos[:, None]
     ms = jnp.sum(wn * jnp.sum(jnp.where(used[..., None], res, 0.0) ** 2, axis=-1), axis=1)
     # double-where: sqrt has an infinite derivative at a perfect fit.

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 from jaxtyping import Array, Float
 
 
@@ -45,13 +46,18 @@ def quat_rotate(
 @jax.jit
 def quat_to_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     """Rotation matrix of a unit quaternion (wxyz); ``x_a = R x_b``."""
-    w, x, y, z = jnp.moveaxis(q, -1, 0)
-    rows = [
+    rows = rotation_rows(*jnp.moveaxis(q, -1, 0))
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def rotation_rows(w: ArrayLike, x: ArrayLike, y: ArrayLike, z: ArrayLike) -> list[list[ArrayLike]]:
+    """Rotation matrix entries ``R[a][b]`` of unit quaternions given as separate arrays
+    (jax or numpy: plain arithmetic, no compilation for numpy inputs)."""
+    return [
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ]
-    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 @jax.jit

@@ -10,7 +10,7 @@ from _jax_ops_reference import (
     tool_recording,
 )
 
-from robtraj.jax_ops import led_variance, windowed_moments
+from robtraj.jax_ops import led_variance, led_variances, windowed_moments
 
 REFERENCES = {"paper": led_variance_paper_loop, "pairwise": led_variance_pairwise_loop}
 
@@ -97,6 +97,34 @@ def test_gradient_is_finite_with_occlusion():
     g = np.asarray(jax.grad(loss)(x))
     seen = np.isfinite(pos)
     assert np.all(np.isfinite(g[seen])) and np.all(g[~seen] == 0)
+
+
+def test_both_variants_in_one_pass_match_each_alone():
+    pos, *_ = tool_recording(300, 6, occlusion=0.3, seed=3)
+    x = jnp.asarray(pos)
+    both = led_variances(x, 9, variants=("pairwise", "paper"))
+    for got, variant in zip(both, ("pairwise", "paper")):
+        # the same sums, fused differently: equal to rounding
+        alone = np.asarray(led_variance(x, 9, variant=variant))
+        np.testing.assert_allclose(np.asarray(got), alone, rtol=1e-13, atol=0)
+
+
+@pytest.mark.parametrize("variant", ["paper", "pairwise"])
+def test_gradient_matches_finite_differences(variant):
+    pos, *_ = tool_recording(40, 5, occlusion=0.2, seed=11)
+    x = jnp.asarray(pos)
+    rng = np.random.default_rng(0)
+    direction = jnp.asarray(np.where(np.isfinite(pos), rng.normal(size=pos.shape), 0.0))
+
+    def loss(p):
+        v = led_variance(p, 7, variant=variant)
+        return jnp.sum(jnp.where(jnp.isnan(v), 0.0, v)) * 1e9  # [mm²]-like scale
+
+    g = jax.grad(loss)(x)
+    analytic = float(jnp.sum(jnp.where(jnp.isfinite(x), g, 0.0) * direction))
+    eps = 1e-7
+    fd = (loss(x + eps * direction) - loss(x - eps * direction)) / (2 * eps)
+    np.testing.assert_allclose(analytic, float(fd), rtol=1e-5)
 
 
 def test_bad_input():
