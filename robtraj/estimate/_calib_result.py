@@ -79,7 +79,7 @@ class CalibrationResult:
     initial: dict[str, Pose] = dataclasses.field(default_factory=dict)
     unseen_leds: tuple[int, ...] = ()
     robust: str | None = None
-    #: cluster-robust (sandwich) covariance over `n_clusters` clusters of observations
+    #: cluster-robust (delete-one-cluster jackknife) covariance over `n_clusters` clusters
     #: (`robtraj.estimate.robust_covariance`), same layout as `covariance`
     covariance_robust: np.ndarray | None = None
     n_clusters: int = 0
