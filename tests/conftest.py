@@ -1,17 +1,11 @@
 """Suite-wide settings: float64 JAX and a non-interactive matplotlib backend."""
 
-import atexit
 import os
-import shutil
-import tempfile
 
 os.environ.setdefault("MPLBACKEND", "Agg")
-# JAX's persistent compilation cache of the CLI: a per-run temporary directory, never the
-# user's ~/.cache.
-if "ROBTRAJ_JAX_CACHE" not in os.environ:
-    _cache = tempfile.mkdtemp(prefix="robtraj-jax-cache-")
-    os.environ["ROBTRAJ_JAX_CACHE"] = _cache
-    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
+# JAX's persistent compilation cache of the CLI is off in the suite: the workers would
+# share one directory, serialise on its lock and write every kernel they compile.
+os.environ.setdefault("ROBTRAJ_JAX_CACHE", "off")
 
 import jax  # noqa: E402
 

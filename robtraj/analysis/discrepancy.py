@@ -270,7 +270,9 @@ class _HeldOut:
         r2, v3 = [], []
         for f in (0, 1):
             train = np.where((self.fold != f)[:, None], self.weights, 0.0)
-            res = self._fit(self.rec, estimate=estimate, weights=train, init=init)
+            res = self._fit(
+                self.rec, estimate=estimate, weights=train, init=init, space=EFFECT_NAMES
+            )
             d = self._predict(self.rec, res)[self.fold == f]
             v = _aligned(self.rec, res, self.var3)[self.fold == f]
             use = np.isfinite(d[..., 0]) & np.isfinite(v)
@@ -351,7 +353,8 @@ def discover(
     variables = _frame_variables(rec, angles)
 
     say("nominal fit")
-    current = fit(rec, weights=weights)
+    # every fit of the search in the library's space: one compilation per recording
+    current = fit(rec, weights=weights, space=EFFECT_NAMES)
     var3 = _aligned(rec, current, 3.0 * var)
     weights_c = _aligned(rec, current, weights)
     n_obs = int(np.isfinite(current.residuals[..., 0]).sum()) * 3
@@ -397,7 +400,7 @@ def discover(
         accepted = None
         for cand in significant:
             say(f"refitting with {cand}")
-            r = fit(rec, estimate=(*named, cand), weights=weights, init=current)
+            r = fit(rec, estimate=(*named, cand), weights=weights, init=current, space=EFFECT_NAMES)
             k = _free_count(r, cand)
             if k == 0:
                 continue

@@ -6,7 +6,8 @@ Bundle calibration lives in `robtraj.estimate.calibration`.
 """
 
 from ._base_frame import base_frame_poses
-from ._noise import NoiseModel, estimate_noise, observation_angles, observation_noise
+from ._noise import NoiseModel, estimate_noise
+from ._observation_noise import observation_angles, observation_noise
 from ._poses import (
     PoseEstimate,
     chunked_led_variance,

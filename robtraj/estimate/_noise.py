@@ -34,7 +34,6 @@ from jaxtyping import Float, Int
 from scipy.optimize import nnls
 
 from .._errors import UserError
-from ..recording import Recording
 
 #: hat functions over the emission angle (knots at evenly spaced quantiles of the angles seen)
 ANGLE_KNOTS = 10
@@ -276,53 +275,22 @@ def _solve_level(g, w, y, s, level):
     return np.clip(out, 0.1, 10.0)
 
 
-def observation_angles(rec: Recording) -> Float[np.ndarray, "frames leds"]:
-    """Emission angle [rad] of every observation `(N, M)` of `rec`, from per-frame tool
-    poses (uniform Procrustes on the nominal constellation), independent of any robot
-    model or calibration. NaN where the LED is unseen, is not on the tool, or the frame
-    has no pose; all NaN when the tool has no LED normals."""
-    from ._poses import estimate_poses, led_emission_angles
-
-    n, m = rec.positions.shape[:2]
-    if rec.tool is None or rec.tool.normals is None or rec.tool.constellation is None:
-        return np.full((n, m), np.nan)
-    est = estimate_poses(rec, weighting="uniform", register=False, leds=rec.led_ids)
-    row = {int(i): k for k, i in enumerate(np.asarray(rec.tool.led_ids))}
-    rows = np.array([row.get(int(i), -1) for i in rec.led_ids])
-    on_tool = rows >= 0
-    const = np.where(on_tool[:, None], np.asarray(rec.tool.constellation)[rows], 0.0)
-    normals = np.where(on_tool[:, None], np.asarray(rec.tool.normals)[rows], 0.0)
-    ang = led_emission_angles(est.position, est.quaternion_wxyz, const, normals)
-    return np.where(rec.visible & est.valid[:, None] & on_tool[None], ang, np.nan)
-
-
-def observation_noise(
-    rec: Recording, angles: Float[np.ndarray, "frames leds"] | None = None
+def noise_and_variance(
+    positions: Float[np.ndarray, "frames leds 3"],
+    theta: Float[np.ndarray, "frames leds"] | None,
+    led_ids: Int[np.ndarray, " leds"],
 ) -> tuple[NoiseModel, Float[np.ndarray, "frames leds"]]:
-    """The noise model of `rec`'s tool LEDs (`estimate_noise`) and the per-axis variance
-    [m²] `(N, M)` it gives every observation: NaN where unseen or not on the tool; an
-    observation without an emission angle (its frame has no pose) gets the variance at
-    the median angle. `angles`: `observation_angles(rec)` if already computed.
-
-    Raises `UserError` when the recording holds too few runs of consecutive frames."""
-    if angles is None:
-        angles = observation_angles(rec)
-    ids = np.asarray(rec.led_ids)
-    on_tool = (
-        np.isin(ids, np.asarray(rec.tool.led_ids))
-        if rec.tool is not None
-        else np.ones(ids.size, bool)
-    )
-    cols = np.flatnonzero(on_tool)
-    pos = rec.positions if cols.size == ids.size else rec.positions[:, cols]
-    th = angles if cols.size == ids.size else angles[:, cols]
-    have_angle = bool(np.any(np.isfinite(th)))
-    model = estimate_noise(pos, th if have_angle else None, ids[cols])
+    """`estimate_noise` of one rigid tool's LEDs and the per-axis variance [m²] it gives
+    every observation (NaN where unseen); an observation without an emission angle (its
+    frame has no pose) gets the variance at the median angle."""
+    have_angle = theta is not None and bool(np.any(np.isfinite(theta)))
+    model = estimate_noise(positions, theta if have_angle else None, led_ids)
+    th = np.asarray(theta, float) if have_angle else np.zeros(positions.shape[:2])
     fill = float(np.nanmedian(th)) if have_angle else 0.0
-    var = np.full(angles.shape, np.nan)
-    for a in range(0, pos.shape[0], 100_000):
+    var = np.empty(positions.shape[:2])
+    for a in range(0, positions.shape[0], 100_000):
         sl = slice(a, a + 100_000)
-        var[sl, cols] = model.observation_variance(
-            pos[sl], np.where(np.isfinite(th[sl]), th[sl], fill)
+        var[sl] = model.observation_variance(
+            positions[sl], np.where(np.isfinite(th[sl]), th[sl], fill)
         )
-    return model, np.where(rec.visible, var, np.nan)
+    return model, var

@@ -23,6 +23,7 @@ from ..jax_ops import (
     weighted_procrustes,
 )
 from ..recording import Recording
+from ._noise import noise_and_variance
 from ._registration import Registration, _quat_matrix, register_leds
 from ._static import static_segments
 from ._weighting import LedFeatures, get_weighting, weighting_needs
@@ -223,6 +224,7 @@ def _poses_chunk(model, x_halo, usable, variance, pairwise, *, weighting, params
         pairwise_variance=pairwise,
         residual=jnp.zeros(seen.shape, x.dtype),
         emission_angle=jnp.full(seen.shape, jnp.nan, x.dtype),
+        noise_variance=jnp.full(seen.shape, jnp.nan, x.dtype),
     )
     weights = get_weighting(weighting)(features, **dict(params))
     return weighted_procrustes(model, x, weights)
@@ -325,7 +327,7 @@ def estimate_poses(
     if window < 3 or window > n:
         raise UserError(f"--window must be between 3 and the number of frames ({n}), got {window}")
     notes = []
-    iterative = bool(needs & {"residual", "emission_angle"})
+    iterative = bool(needs & {"residual", "emission_angle", "noise_variance"})
     registering = constellation is None and register and reference is not None
     # every variance the scheme and registration need, in one pass over the pair distances
     variants = (("paper",) if registering or "variance" in needs else ()) + (
@@ -397,16 +399,27 @@ def estimate_poses(
         pairwise_variance=jnp.asarray(pairwise),
         residual=jnp.zeros((n, m)),
         emission_angle=jnp.full((n, m), jnp.nan),
+        noise_variance=jnp.full((n, m), jnp.nan),
     )
     with progress_bar("poses", n * 3, progress) as advance:
         # features from a previous fit: start uniform, refine twice
         fit = fit_poses(const0, positions, np.asarray(seen_used, np.float64), advance=advance)
-        for _ in range(2):
-            if "emission_angle" in needs:
-                if normals is None:
-                    raise UserError("emission_angle weighting needs LED normals in /tool")
+        for it in range(2):
+            angles = None
+            if normals is not None and needs & {"emission_angle", "noise_variance"}:
                 angles = led_emission_angles(fit.position, fit.quaternion_wxyz, const0, normals)
+                angles = np.where(seen_used & fit.valid[:, None], angles, np.nan)
+            if "emission_angle" in needs:
+                if angles is None:
+                    raise UserError(
+                        f"{weighting} weighting needs LED normals in /tool (emission angles)"
+                    )
                 features = dataclasses.replace(features, emission_angle=jnp.asarray(angles))
+            if "noise_variance" in needs and it == 0:
+                features = dataclasses.replace(
+                    features,
+                    noise_variance=jnp.asarray(noise_and_variance(positions, angles, ids)[1]),
+                )
             if "residual" in needs:
                 res = np.nan_to_num(residuals(fit, const0, positions))
                 features = dataclasses.replace(features, residual=jnp.asarray(res))

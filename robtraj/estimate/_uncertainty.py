@@ -141,8 +141,17 @@ def robust_covariance(
     g = s.shape[0]
     if g < 2:
         return np.full(np.shape(h), np.nan)
-    hg = np.asarray(cluster_h, float)
-    delta = np.stack([_pinv(h - hg[k], free)[0] @ s[k] for k in range(g)])
+    idx = np.flatnonzero(free)
+    hk = (np.asarray(h, float) - np.asarray(cluster_h, float))[:, idx[:, None], idx]
+    d = np.sqrt(np.clip(np.diagonal(hk, axis1=1, axis2=2), 0.0, None))
+    d = np.where(d > 1e-12 * np.maximum(d.max(1, keepdims=True), 1e-300), d, 1.0)
+    lam, vec = np.linalg.eigh(hk / (d[:, :, None] * d[:, None, :]))
+    keep = lam > RCOND * lam[:, -1:]
+    inv_lam = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    # δ_g = D⁻¹ V Λ⁺ Vᵀ D⁻¹ s_g, all clusters at once
+    u = np.einsum("gji,gj->gi", vec, s[:, idx] / d)
+    delta = np.zeros_like(s)
+    delta[:, idx] = np.einsum("gij,gj->gi", vec, inv_lam * u) / d
     dev = delta - delta.mean(0)
     return (g - 1) / g * dev.T @ dev
 
@@ -158,7 +167,7 @@ def effective_clusters(
     rests on a few clusters however many the recording has. NaN where undetermined."""
     hp, _ = _pinv(np.asarray(h, float), free)
     a = hp if t is None else np.asarray(t, float) @ hp
-    part = np.einsum("mi,gij,mj->gm", a, np.asarray(cluster_h, float), a)
+    part = np.sum((a @ np.asarray(cluster_h, float)) * a, -1)  # aᵐ H_g aᵐ per g, m
     total = part.sum(0)
     with np.errstate(invalid="ignore", divide="ignore"):
         share = part / total

@@ -24,6 +24,8 @@ class LedFeatures(eqx.Module):
     - `pairwise_variance` [m²]: mean windowed variance of the pair distances.
     - `residual` [m]: distance of the LED from a previous fit (0 before any fit).
     - `emission_angle` [rad]: angle to the camera from known normals (NaN if unknown).
+    - `noise_variance` [m²]: per-axis variance of the observation under the recording's
+      noise model (`robtraj.estimate.estimate_noise`: emission angle, distance, LED).
     """
 
     visible: Bool[Array, "frames leds"]
@@ -31,20 +33,23 @@ class LedFeatures(eqx.Module):
     pairwise_variance: Float[Array, "frames leds"]
     residual: Float[Array, "frames leds"]
     emission_angle: Float[Array, "frames leds"]
+    noise_variance: Float[Array, "frames leds"]
 
 
 WeightingFn = Callable[..., Float[Array, "frames leds"]]
 _REGISTRY: dict[str, WeightingFn] = {}
 _NEEDS: dict[str, frozenset[str]] = {}
-FEATURES = frozenset({"variance", "pairwise_variance", "residual", "emission_angle"})
+FEATURES = frozenset(
+    {"variance", "pairwise_variance", "residual", "emission_angle", "noise_variance"}
+)
 
 
 def register_weighting(name: str, fn: WeightingFn | None = None, *, needs=("variance",)):
     """Register `fn(features, **params) -> weights` under `name` (usable as a decorator).
 
     `needs` names the `LedFeatures` fields the scheme reads beyond `visible`; the pose
-    pipeline computes only those (``residual`` and ``emission_angle`` come from a
-    previous fit, so such schemes are iterated).
+    pipeline computes only those (``residual``, ``emission_angle`` and ``noise_variance``
+    come from a previous fit, so such schemes are iterated).
     """
     unknown = set(needs) - FEATURES
     if unknown:
@@ -147,14 +152,9 @@ def robust(f: LedFeatures, k: float = 1.345, scale: float | None = None):
     return jnp.where(f.visible, w, 0.0)
 
 
-@register_weighting("emission_angle", needs=("emission_angle",))
-def emission_angle_weight(
-    f: LedFeatures, edge: float = 1.134, gain: float = 4.0
-) -> Float[Array, "frames leds"]:
-    """1/σ² of a noise model growing toward the visibility edge: σ ∝ 1 + gain·(θ/edge)⁴.
-
-    Needs LED normals (the tool's emission axes); LEDs of unknown angle count as head-on.
-    """
-    theta = jnp.where(jnp.isfinite(f.emission_angle), f.emission_angle, 0.0)
-    sigma = 1.0 + gain * (theta / edge) ** 4
-    return jnp.where(f.visible, 1.0 / sigma**2, 0.0)
+@register_weighting("emission_angle", needs=("noise_variance",))
+def emission_angle_weight(f: LedFeatures, floor_fraction: float = 0.05):
+    """1/σ² of the recording's noise model, which grows with the emission angle and the
+    distance and differs from LED to LED (estimated from the recording itself; without
+    LED normals, of distance and LED only)."""
+    return _inverse(f.noise_variance, f.visible, floor_fraction)

@@ -71,7 +71,7 @@ from ._calib_problem import (
 )
 from ._calib_result import CalibrationResult, _pose_of, _se3, _wxyz_xyz
 from ._next_poses import next_poses
-from ._noise import observation_noise
+from ._observation_noise import observation_noise
 from ._solve import normal_at, solve
 from ._uncertainty import covariance, effective_clusters, identifiability, robust_covariance
 
@@ -166,7 +166,9 @@ class _Setup:
     bundle: BundleData
     gauge: str
     initial: dict
-    free: tuple[str, ...]
+    free: tuple[str, ...]  # effects in the problem: estimated ones and held ones
+    estimated: tuple[str, ...]
+    in_model: np.ndarray  # θ entries of the poses, the estimated effects, the constellation
     q: int
     w_user: np.ndarray
     names_theta: list[str]
@@ -210,6 +212,7 @@ def fit(
     chunk: int | None = None,
     progress: Callable[[str], None] | None = None,
     suggest: int = 0,
+    space: Sequence[str] = (),
 ) -> CalibrationResult:
     """Bundle-calibrate `recording` (see the module docstring).
 
@@ -231,6 +234,10 @@ def fit(
     - `suggest`: when the recording leaves a rigid-transform parameter undetermined or
       weak (σ above `WEAK_SIGMA`), list this many static robot poses that would determine
       it best (`identifiability["next_poses"]`, `robtraj.estimate._next_poses`).
+    - `space`: effects that enter the problem held at their start values besides the
+      estimated ones. The estimate is the same; fits of one recording in one space share
+      one compilation whatever they estimate (the discrepancy search fits in the whole
+      library's space), at the price of Jacobian columns for the held effects.
 
     **Returns:** a `CalibrationResult` (`converged` False, with the reason in
     `convergence`, when a solve stopped before its criterion held). Raises `UserError`
@@ -250,9 +257,11 @@ def fit(
         else:
             weights, noise_info = np.where(np.isfinite(var), 1.0 / var, 0.0), noise.to_dict()
             del var
-    st = _setup(recording, estimate, init, weights, chunk, say)
+    st = _setup(recording, estimate, init, weights, chunk, say, space=space)
     data, q, free, w_user = st.data, st.q, st.free, st.w_user
-    free_mask, ident = identifiability(st.h0, st.phi_names, st.has_column, st.droppable)
+    free_mask, ident = identifiability(
+        st.h0, st.phi_names, st.has_column & st.in_model, st.droppable
+    )
     if ident["dropped"]:
         say("not identifiable, fixed: " + ", ".join(d["parameter"] for d in ident["dropped"]))
 
@@ -348,7 +357,7 @@ def fit(
     effects_out.update({k: v for k, v in eff.to_dict().items() if k not in effects_out})
     ident = {
         **ident,
-        "fixed_parameters": [phi_names[i] for i in range(q) if not free_mask[i]],
+        "fixed_parameters": [phi_names[i] for i in range(q) if st.in_model[i] and not free_mask[i]],
     }
     sig = np.sqrt(np.clip(np.maximum(np.diag(cov_phi), np.diag(cov_robust)), 0, None))
     ident["weak"] = _weak(phi_names[:12], sig[:12], set(ident["undetermined"]))
@@ -372,17 +381,18 @@ def fit(
         ident["next_poses"] = None if nxt is None else nxt.to_json()
     converged = all(x.converged for x in sols)
     failed = [x for x in sols if not x.converged]
+    model = np.flatnonzero(np.r_[st.in_model[:q], np.ones(len(phi_names) - q, bool)])
     return CalibrationResult(
         camera_from_base=_pose_of(problem.camera_from_base),
         flange_from_tool=_pose_of(problem.flange_from_tool),
         led_ids=np.asarray(data.led_ids),
         constellation=np.asarray(problem.constellation),
         effects=effects_out,
-        estimated=free,
-        parameter_names=tuple(phi_names),
-        covariance=cov_phi,
-        covariance_robust=cov_robust,
-        clusters_effective=g_eff,
+        estimated=st.estimated,
+        parameter_names=tuple(phi_names[i] for i in model),
+        covariance=cov_phi[np.ix_(model, model)],
+        covariance_robust=cov_robust[np.ix_(model, model)],
+        clusters_effective=g_eff[model],
         n_clusters=int(n_clusters + (bundle.probe.probed.shape[0] if bundle.probe else 0)),
         residual_rms_m=float(np.sqrt(np.mean(sq[used]))),
         noise_sigma_m=float(np.sqrt(np.mean(sq[used]) / 3.0)),
@@ -418,7 +428,8 @@ def predict_residuals(recording: Recording, calibration: CalibrationResult) -> n
 
     Serves held-out evaluation: fit with weights zero on some frames, then compare the
     prediction there."""
-    st = _setup(recording, calibration.estimated, calibration, None, None, lambda _m: None, False)
+    # the whole library's space: one compilation whatever the calibration estimated
+    st = _setup(recording, (), calibration, None, None, lambda _m: None, False, EFFECT_NAMES)
     data = st.data
     d, _ = cp.evaluate(
         jnp.zeros(st.q), st.bundle.problem.constellation, st.bundle.problem, st.bundle.chunks
@@ -555,12 +566,13 @@ def score_effects(
     return out
 
 
-def _setup(recording, estimate, init, weights, chunk, say, normal=True) -> _Setup:
+def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()) -> _Setup:
     estimate = tuple(dict.fromkeys(estimate))
-    bad = [e for e in estimate if e not in EFFECT_NAMES]
+    bad = [e for e in (*estimate, *space) if e not in EFFECT_NAMES]
     if bad:
         raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
-    free = tuple(n for n in EFFECT_NAMES if n in estimate)
+    free = tuple(n for n in EFFECT_NAMES if n in estimate or n in space)
+    estimated = tuple(n for n in EFFECT_NAMES if n in estimate)
 
     # observations
     reference = start = None
@@ -620,7 +632,10 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True) -> _Setu
     bundle = BundleData(problem=problem, chunks=chunks, basis=jnp.asarray(basis), probe=probe)
     gnames = _global_names(effects0, free)
     q = len(gnames)
+
     names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
+    held = set(free) - set(estimated)
+    in_model = np.array([n.partition("[")[0] not in held for n in names_theta])
     has_column = np.concatenate([np.ones(q, bool), np.any(basis != 0, axis=0)])
     n_res = 3 * int(np.sum(w_user > 0)) + (0 if probe is None else 6 * probe.probed.shape[0])
     normal0 = _normal_at_zero(bundle, len(names_theta)) if normal else None
@@ -633,6 +648,8 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True) -> _Setu
         gauge=gauge,
         initial=initial,
         free=free,
+        estimated=estimated,
+        in_model=in_model,
         q=q,
         w_user=w_user,
         names_theta=names_theta,

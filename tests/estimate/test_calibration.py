@@ -19,7 +19,7 @@ from robtraj.estimate.calibration import (
     fit,
     robot_world_hand_eye,
 )
-from robtraj.model import Effects
+from robtraj.model import EFFECT_NAMES, Effects
 from robtraj.recording import Pose
 from robtraj.sim import simulate
 
@@ -183,6 +183,17 @@ def test_clock_offset_recovered_and_confounded_joint_offsets_reported():
     assert res.sigma["joint_offset[2]"] > 0.0
     doc = res.to_json()
     assert "joint_offset" in doc["effects"] and doc["time_offset"] == res.time_offset
+    # the same fit with every other effect of the library in the problem, held at zero
+    wide = fit(rec, estimate=("time_offset", "joint_offset"), space=EFFECT_NAMES)
+    assert wide.estimated == res.estimated and wide.parameter_names == res.parameter_names
+    # (the order of exact null directions is rounding noise)
+    assert sorted(map(str, wide.identifiability["dropped"])) == sorted(
+        map(str, res.identifiability["dropped"])
+    )
+    assert abs(wide.time_offset - res.time_offset) < 1e-6 * res.sigma["time_offset"]
+    for name, sigma in res.sigma.items():
+        assert wide.sigma[name] == pytest.approx(sigma, rel=1e-6, abs=0.0), name
+    assert abs(wide.chi2 - res.chi2) < 1e-9 * res.chi2
 
 
 def test_robust_loss_reports_outlier_frames(fits):
