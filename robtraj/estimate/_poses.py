@@ -406,7 +406,8 @@ def estimate_poses(
         fit = fit_poses(const0, positions, np.asarray(seen_used, np.float64), advance=advance)
         for it in range(2):
             angles = None
-            if normals is not None and needs & {"emission_angle", "noise_variance"}:
+            want = "emission_angle" in needs or ("noise_variance" in needs and it == 0)
+            if normals is not None and want:
                 angles = led_emission_angles(fit.position, fit.quaternion_wxyz, const0, normals)
                 angles = np.where(seen_used & fit.valid[:, None], angles, np.nan)
             if "emission_angle" in needs:

@@ -19,9 +19,11 @@ RCOND = 1e-10
 
 
 def column_scale(h: np.ndarray) -> np.ndarray:
-    """D = sqrt(diag H), with 1 for columns without information."""
-    d = np.sqrt(np.clip(np.diag(h), 0.0, None))
-    floor = 1e-12 * (d.max() if d.size and d.max() > 0 else 1.0)
+    """D = sqrt(diag H), with 1 for columns without information (`h` may be a stack
+    `(..., p, p)`)."""
+    d = np.sqrt(np.clip(np.diagonal(h, axis1=-2, axis2=-1), 0.0, None))
+    top = d.max(-1, keepdims=True) if d.shape[-1] else np.ones(d.shape[:-1] + (1,))
+    floor = 1e-12 * np.where(top > 0, top, 1.0)
     return np.where(d > floor, d, 1.0)
 
 
@@ -141,17 +143,8 @@ def robust_covariance(
     g = s.shape[0]
     if g < 2:
         return np.full(np.shape(h), np.nan)
-    idx = np.flatnonzero(free)
-    hk = (np.asarray(h, float) - np.asarray(cluster_h, float))[:, idx[:, None], idx]
-    d = np.sqrt(np.clip(np.diagonal(hk, axis1=1, axis2=2), 0.0, None))
-    d = np.where(d > 1e-12 * np.maximum(d.max(1, keepdims=True), 1e-300), d, 1.0)
-    lam, vec = np.linalg.eigh(hk / (d[:, :, None] * d[:, None, :]))
-    keep = lam > RCOND * lam[:, -1:]
-    inv_lam = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
-    # δ_g = D⁻¹ V Λ⁺ Vᵀ D⁻¹ s_g, all clusters at once
-    u = np.einsum("gji,gj->gi", vec, s[:, idx] / d)
-    delta = np.zeros_like(s)
-    delta[:, idx] = np.einsum("gij,gj->gi", vec, inv_lam * u) / d
+    inv, _ = _pinv(np.asarray(h, float) - np.asarray(cluster_h, float), free)
+    delta = np.einsum("gij,gj->gi", inv, s)
     dev = delta - delta.mean(0)
     return (g - 1) / g * dev.T @ dev
 
@@ -174,12 +167,18 @@ def effective_clusters(
         return np.where(total > 0, 1.0 / np.sum(share**2, 0), np.nan)
 
 
-def _pinv(h: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, int]:
+def _pinv(h: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray | int]:
+    """Pseudo-inverse of the column-scaled free block of `h` (or of each matrix of a stack
+    `(..., p, p)`), null directions below `RCOND` left out; zero elsewhere. Returns it and
+    its rank (an array for a stack)."""
     idx = np.flatnonzero(free)
-    d = column_scale(h)
-    lam, vec = np.linalg.eigh(_scaled(h, idx, d))
-    keep = lam > RCOND * lam[-1]
-    inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T
-    out = np.zeros_like(h, dtype=float)
-    out[np.ix_(idx, idx)] = inv / np.outer(d[idx], d[idx])
-    return out, int(keep.sum())
+    d = column_scale(h)[..., idx]
+    hs = h[..., idx[:, None], idx] / (d[..., :, None] * d[..., None, :])
+    lam, vec = np.linalg.eigh(hs)
+    keep = lam > RCOND * lam[..., -1:]
+    inv_lam = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    inv = (vec * inv_lam[..., None, :]) @ np.swapaxes(vec, -1, -2)
+    out = np.zeros(np.shape(h), dtype=float)
+    out[..., idx[:, None], idx] = inv / (d[..., :, None] * d[..., None, :])
+    rank = keep.sum(-1)
+    return out, int(rank) if rank.ndim == 0 else rank
