@@ -247,9 +247,11 @@ def estimate_noise(
 
 def _normal_v(a, w, y):
     """Normal equations of y_ij ≈ (a_i + a_j)·v over the pairs i < j (weights w)."""
+    f = a.shape[-1]
     sw = w.sum(-1)  # (T, m)
-    h = np.einsum("tif,ti,tig->fg", a, sw, a) + np.einsum("tif,tij,tjg->fg", a, w, a)
-    r = np.einsum("tif,ti->f", a, (w * y).sum(-1))
+    flat = a.reshape(-1, f)
+    h = flat.T @ (flat * sw.reshape(-1, 1)) + flat.T @ (w @ a).reshape(-1, f)
+    r = flat.T @ (w * y).sum(-1).reshape(-1)
     return h, r
 
 

@@ -141,10 +141,12 @@ def led_emission_angles(position, quaternion_wxyz, constellation, normals):
     """Emission angle [rad] `(frames, leds)` of each LED toward the camera at the origin of
     the camera frame, from tool poses and the constellation/normals in the tool frame."""
     r = _quat_matrix(np.nan_to_num(quaternion_wxyz))
-    leds = np.einsum("fij,mj->fmi", r, constellation) + position[:, None, :]
-    nrm = np.einsum("fij,mj->fmi", r, normals)
-    to_cam = -leds / np.linalg.norm(leds, axis=-1, keepdims=True)
-    return np.arctan2(np.linalg.norm(np.cross(to_cam, nrm), axis=-1), np.sum(to_cam * nrm, -1))
+    # (frames, 3, leds): the LED's direction to the camera (unnormalised; atan2 of the
+    # cross and dot products needs no unit length) and its normal
+    x, y, z = np.moveaxis(-(r @ np.asarray(constellation).T) - position[:, :, None], 1, 0)
+    u, v, w = np.moveaxis(r @ np.asarray(normals).T, 1, 0)
+    cross = np.sqrt((y * w - z * v) ** 2 + (z * u - x * w) ** 2 + (x * v - y * u) ** 2)
+    return np.arctan2(cross, x * u + y * v + z * w)
 
 
 def _select(rec: Recording, leds, reference_leds):
