@@ -118,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
             else "(σ: not determined)"
         ),
     ]
+    if res.noise_model.get("kind") == "uniform":
+        lines.append(f"weights: uniform, {res.noise_model.get('reason', 'no noise model')}")
     if "time_offset" in res.estimated:
         lines.append(
             f"time offset {res.time_offset * 1e3:.4f} ms (σ {s['time_offset'] * 1e3:.4f} ms)"

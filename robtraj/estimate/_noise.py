@@ -45,6 +45,10 @@ MAX_TRIPLES = 8000
 VARIANCE_FLOOR = 0.02
 #: contiguous time blocks of the jackknife
 BLOCKS = 8
+#: below this per-axis σ [m] (1 nm, a thousandth of the best optical tracker's noise) the
+#: LED positions carry no noise of their own: points computed from a 6-DOF pose, or
+#: rounded to a rigid body, whose variances the model cannot tell
+MIN_SIGMA = 1e-9
 _C2 = np.array([1.0, 4.0, 1.0])  # squares of the second-difference coefficients
 
 
@@ -156,7 +160,8 @@ def estimate_noise(
     emission angle [rad] of each observation (None when the LED normals are unknown: the
     model then depends on distance and LED only), `led_ids` the columns' LED ids.
 
-    Raises `UserError` when fewer than 10 triples of consecutive frames see two LEDs.
+    Raises `UserError` when fewer than 10 triples of consecutive frames see two LEDs, or
+    when the pair distances show no noise (σ below `MIN_SIGMA`).
     """
     pos = np.asarray(positions, float)
     n, m = pos.shape[:2]
@@ -231,6 +236,12 @@ def estimate_noise(
     r_all = sum(q[1] for q in parts)
     means = np.array([centre_mean @ _nnls_normal(h_all - hb, r_all - rb) for hb, rb in parts])
     full = float(centre_mean @ v)
+    if not full >= MIN_SIGMA**2:
+        raise UserError(
+            f"the distances between the LEDs do not vary from frame to frame (σ "
+            f"{np.sqrt(max(full, 0.0)):.1e} m): the positions carry no LED noise of their own "
+            "(points computed from a 6-DOF pose?), so no noise model can be estimated"
+        )
     # a knot the data barely reach may come out at zero; no LED is noiseless
     v = np.maximum(v, VARIANCE_FLOOR * full)
     rel_se = float(np.sqrt((BLOCKS - 1) / BLOCKS * np.sum((means - means.mean()) ** 2)) / full)

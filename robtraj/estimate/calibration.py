@@ -272,7 +272,9 @@ def fit(
 
     used = w_user > 0
     w = w_user
-    label = "fit" if noise_info["kind"] == "user_weights" else "noise-weighted fit"
+    label = {"user_weights": "fit", "uniform": "uniformly weighted fit"}.get(
+        noise_info["kind"], "noise-weighted fit"
+    )
     bundle, sol = _solve_pass(st, st.bundle, free_mask, solver, max_iter, say, label, st.normal0)
     sols = [sol]
     w_noise = w
@@ -361,7 +363,14 @@ def fit(
     }
     sig = np.sqrt(np.clip(np.maximum(np.diag(cov_phi), np.diag(cov_robust)), 0, None))
     ident["weak"] = _weak(phi_names[:12], sig[:12], set(ident["undetermined"]))
-    watched = list(dict.fromkeys([w["parameter"] for w in ident["weak"]] + ident["undetermined"]))
+    # poses are suggested for the global parameters (rigid transforms, effects); an
+    # undetermined LED coordinate needs that LED seen, not another pose
+    watched = list(
+        dict.fromkeys(
+            [w["parameter"] for w in ident["weak"]]
+            + [u for u in ident["undetermined"] if u in st.names_theta[:q]]
+        )
+    )
     if watched and suggest:
         say("poses that would determine " + ", ".join(watched))
         nxt = _next_poses(

@@ -66,16 +66,20 @@ _POSE_CSV = (
 @pytest.mark.skipif(not _POSE_CSV.is_file(), reason="ipa-robot-accuracy data not present")
 def test_calibrates_a_recording_imported_from_pose_csv(tmp_path, capsys):
     """6-DOF pose observations (`robtraj import --format pose-csv`): the tool frame is the
-    probed one and the fit converges (exit 0). About a minute, most of it compilation."""
+    probed one, the virtual points get uniform weights (they carry no noise of their own)
+    and the fit with link lengths converges (exit 0). About a minute, most of it
+    compilation."""
     src = tmp_path / "poses.csv"
     src.write_text("".join(_POSE_CSV.read_text().splitlines(keepends=True)[:301]))
     rec = tmp_path / "rec.h5"
     args = ["import", str(src), "-o", str(rec), "--format", "pose-csv", "--preset", "ipa-ur10"]
     assert main(args) == 0
     out = tmp_path / "calib.json"
-    assert main(["calibrate", str(rec), "-o", str(out)]) == 0
+    assert main(["calibrate", str(rec), "-o", str(out), "--estimate", "link_length"]) == 0
     doc = json.loads(out.read_text())
     assert doc["converged"] and doc["convergence"]
+    assert doc["noise_model"]["kind"] == "uniform"
+    assert "weights: uniform" in capsys.readouterr().out
     assert doc["gauge"]["kind"] == "probe"
     # the nominal UR10 explains the probe poses to about a millimetre (docs/real_ur10.md)
     assert doc["residual_rms_m"] < 3e-3

@@ -86,3 +86,27 @@ def test_too_few_consecutive_frames_is_a_clear_error():
     pos[::2, :2] = 1.0  # never three consecutive frames
     with pytest.raises(UserError, match="noise of the recording cannot be estimated"):
         estimate_noise(pos, None, np.arange(4))
+
+
+def _apply(poses: jaxlie.SE3, body: np.ndarray) -> np.ndarray:
+    """`body` `(K, 3)` mapped by each of `poses` `(N,)`: `(N, K, 3)`."""
+    return (
+        np.asarray(poses.as_matrix()[:, None, :3, :3] @ body[None, :, :, None])[..., 0]
+        + np.asarray(poses.translation())[:, None, :]
+    )
+
+
+def test_points_without_noise_of_their_own_are_a_clear_error():
+    """Points computed from 6-DOF poses (`robtraj import --format pose-csv`) keep their
+    distances to rounding: no noise model, rather than variances of 1e-33 m² that would
+    weight the calibration by 10³³."""
+    rng = np.random.default_rng(0)
+    body = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]])
+    poses = jaxlie.SE3.exp(jnp.asarray(rng.normal(0.0, 0.3, (500, 6)) + [0, 0, 2, 0, 0, 0]))
+    pos = _apply(poses, body)
+    with pytest.raises(UserError, match="no LED noise of their own"):
+        estimate_noise(pos, None, np.arange(1, 5))
+    # with 1 µm of noise the same points give a model of 1 µm
+    model = estimate_noise(pos + rng.normal(0.0, 1e-6, pos.shape), None, np.arange(1, 5))
+    sigma = np.sqrt(np.mean(model.variance))
+    assert abs(sigma / 1e-6 - 1) < 4 * model.level_rel_se + 0.05, sigma
