@@ -20,4 +20,9 @@ from .iso9283 import (
     PoseCharacteristics as PoseCharacteristics,
     iso9283 as iso9283,
 )
+from .prediction import (
+    Prediction as Prediction,
+    predict as predict,
+    predicted_tool_poses as predicted_tool_poses,
+)
 from .tum import write_tum as write_tum

@@ -24,13 +24,16 @@ _COMMANDS = [
     "iso9283",
     "deviation",
     "discrepancy",
+    "evaluate",
     "report",
     "import",
     "emulate",
     "record",
 ]
 #: commands that compile JAX kernels: they use the persistent compilation cache
-_COMPILING = {"demo", "poses", "calibrate", "iso9283", "deviation", "discrepancy", "report"}
+_COMPILING = {
+    "demo", "poses", "calibrate", "iso9283", "deviation", "discrepancy", "evaluate", "report",
+}  # fmt: skip
 
 
 class _Parser(argparse.ArgumentParser):

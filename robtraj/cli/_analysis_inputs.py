@@ -112,42 +112,14 @@ def warn_undetermined(calib, name: str, consequence: str) -> None:
 def setup_discrepancy(rec, calib, bf) -> float | None:
     """Median distance [m] between the tool positions measured in `bf` (camera frame) and
     those the calibration predicts from the robot log; None without a robot log."""
-    import jax.numpy as jnp
-    import jaxlie
-
-    from ..model import interpolate_joints, motion_direction, predict_tool_poses, robot_from_log
+    from ..analysis.prediction import predicted_tool_poses
 
     if rec.robot is None or rec.robot.joints.shape[0] < 2:
         return None
-    est = bf.poses
     frames = np.flatnonzero(bf.valid)
     frames = frames[np.linspace(0, frames.size - 1, min(frames.size, _SETUP_FRAMES)).astype(int)]
-    robot = robot_from_log(rec.robot.model, rec.robot.dh)
-    effects = calib.effects_module(rec.robot.joints.shape[1])
-    t = np.asarray(rec.time, float)[frames] + calib.time_offset
-    log_t, joints = np.asarray(rec.robot.time, float), np.asarray(rec.robot.joints, float)
-    q = interpolate_joints(jnp.asarray(log_t), jnp.asarray(joints), jnp.asarray(t))
-    direction = motion_direction(log_t, joints, t)
-    if rec.temperature is not None:
-        drift = np.asarray(rec.temperature, float)[frames] - float(rec.temperature[0])
-    else:
-        drift = (np.asarray(rec.time, float)[frames] - float(rec.time[0])) / 60.0
-
-    def se3(pose):
-        return jaxlie.SE3(
-            jnp.concatenate([jnp.asarray(pose.quaternion_wxyz), jnp.asarray(pose.position)])
-        )
-
-    predicted = predict_tool_poses(
-        robot,
-        effects,
-        se3(calib.camera_from_base),
-        se3(calib.flange_from_tool),
-        q,
-        jnp.asarray(direction),
-        jnp.asarray(np.nan_to_num(drift)),
-    )
-    measured = np.asarray(est.position)[frames]
+    predicted = predicted_tool_poses(rec, calib, np.asarray(rec.time, float)[frames])
+    measured = np.asarray(bf.poses.position)[frames]
     d = np.linalg.norm(np.asarray(predicted.translation()) - measured, axis=1)
     return float(np.nanmedian(d))
 

@@ -45,12 +45,17 @@ def base_frame_poses(
     `thermal_drift` is applied per frame from `/tracker/temperature`.
     """
     led_ids = np.asarray(calibration.led_ids)
+    constellation = np.asarray(calibration.constellation)
+    # an LED the calibration never saw sits at its nominal position, not a measured one
+    known = ~np.isin(led_ids, np.asarray(calibration.unseen_leds, int))
+    if known.sum() >= 3:
+        led_ids, constellation = led_ids[known], constellation[known]
     scale = 1.0 + float(np.asarray(calibration.effects.get("tracker_scale", 0.0)))
     positions = np.asarray(rec.positions) / scale
     est = estimate_poses(
         rec.replace(positions=positions),
         weighting=weighting,
-        constellation=np.asarray(calibration.constellation),
+        constellation=constellation,
         leds=led_ids,
         progress=progress,
     )

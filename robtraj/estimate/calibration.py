@@ -90,6 +90,8 @@ __all__ = [
 ]
 
 ROBUST = ("huber", "cauchy")
+#: parameter groups `fit` can hold at their start values
+HOLDABLE = ("camera_from_base", "flange_from_tool", "constellation")
 _ROBUST_K = {"huber": 2.0, "cauchy": 2.0}
 _TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
 _OUTLIER_U = 4.0  # frames whose noise-normalised residual RMS exceeds this are outliers
@@ -213,6 +215,7 @@ def fit(
     progress: Callable[[str], None] | None = None,
     suggest: int = 0,
     space: Sequence[str] = (),
+    hold: Sequence[str] = (),
 ) -> CalibrationResult:
     """Bundle-calibrate `recording` (see the module docstring).
 
@@ -238,6 +241,9 @@ def fit(
       estimated ones. The estimate is the same; fits of one recording in one space share
       one compilation whatever they estimate (the discrepancy search fits in the whole
       library's space), at the price of Jacobian columns for the held effects.
+    - `hold`: parameter groups held at their start values (`init`'s): any of
+      ``"camera_from_base"``, ``"flange_from_tool"``, ``"constellation"`` (to refit only
+      the rigid transforms of another recording under a calibrated model).
 
     **Returns:** a `CalibrationResult` (`converged` False, with the reason in
     `convergence`, when a solve stopped before its criterion held). Raises `UserError`
@@ -257,10 +263,16 @@ def fit(
         else:
             weights, noise_info = np.where(np.isfinite(var), 1.0 / var, 0.0), noise.to_dict()
             del var
+    bad = [h for h in hold if h not in HOLDABLE]
+    if bad:
+        raise UserError(f"cannot hold {', '.join(bad)} (choose from {', '.join(HOLDABLE)})")
     st = _setup(recording, estimate, init, weights, chunk, say, space=space)
     data, q, free, w_user = st.data, st.q, st.free, st.w_user
+    held = np.array([n.split(".", 1)[0] in hold for n in st.names_theta])
+    if not np.any(st.has_column & st.in_model & ~held):
+        raise UserError("nothing to fit: every parameter of the problem is held")
     free_mask, ident = identifiability(
-        st.h0, st.phi_names, st.has_column & st.in_model, st.droppable
+        st.h0, st.phi_names, st.has_column & st.in_model & ~held, st.droppable
     )
     if ident["dropped"]:
         say("not identifiable, fixed: " + ", ".join(d["parameter"] for d in ident["dropped"]))

@@ -13,6 +13,7 @@ from ._figures import (
     velocity_figure as velocity_figure,
     visibility_figure as visibility_figure,
     weighting_figure as weighting_figure,
+    workspace_error_figure as workspace_error_figure,
 )
 from ._html import (
     Figure as Figure,

@@ -17,7 +17,7 @@ _DPI = 110
 def _save(fig, path: str | os.PathLike) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=_DPI)
+    fig.savefig(path, dpi=_DPI, format="png")
     plt.close(fig)
     return path
 
@@ -258,4 +258,36 @@ def weighting_figure(
     axes[0].set_title(title)
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time [s]")
+    return _save(fig, path)
+
+
+def workspace_error_figure(
+    path: str | os.PathLike,
+    tool_position: np.ndarray,
+    position_error: np.ndarray,
+    angle_error: np.ndarray,
+    *,
+    title: str = "Prediction error over the workspace",
+) -> Path:
+    """Tool positions `(N, 3)` in the base frame [m] seen from above (x–y) and from the
+    side (x–z), coloured by the position error `(N,)` [m → mm] and the orientation error
+    `(N,)` [rad → °]."""
+    fig, axes = plt.subplots(2, 2, figsize=(10, 8), layout="constrained")
+    ok = np.all(np.isfinite(tool_position), -1) & np.isfinite(position_error)
+    x, y, z = (tool_position[ok, i] for i in range(3))
+    for row, (v, label, cmap) in enumerate(
+        [
+            (position_error[ok] * 1e3, "position error [mm]", "viridis"),
+            (np.degrees(angle_error[ok]), "orientation error [°]", "magma"),
+        ]
+    ):
+        for col, (h, name) in enumerate([(y, "y"), (z, "z")]):
+            a = axes[row, col]
+            sc = a.scatter(x, h, c=v, s=6, cmap=cmap, vmin=0.0, vmax=float(np.quantile(v, 0.99)))
+            a.set_xlabel("x (base) [m]")
+            a.set_ylabel(f"{name} (base) [m]")
+            a.set_aspect("equal", adjustable="datalim")
+            a.grid(True, alpha=0.3)
+        fig.colorbar(sc, ax=axes[row].tolist(), label=label)
+    axes[0, 0].set_title(title)
     return _save(fig, path)
