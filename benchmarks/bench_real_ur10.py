@@ -100,26 +100,14 @@ def main() -> None:
     total = time.perf_counter() - t0
     print(f"total {total:.1f} s")
     if a.json:
+        doc = wf.to_json()
         out = {
             "poses": {k: s.n for k, s in series.items()},
             "wall_s": wall,
             "total_s": total,
             "cpu_count": os.cpu_count(),
-            "named": wf.named,
-            "rejected": [{"round": e["round"], "effect": e["effect"]} for e in wf.rejected],
-            "calibration_parameters": {
-                k: {n: list(vs) for n, vs in f.parameters().items()}
-                for k, f in wf.calibration.fitted.items()
-            },
-            "fixed_unidentifiable": {
-                k: f.identifiability["dropped"] for k, f in wf.calibration.fitted.items()
-            },
-            "table": wf.table(),
-            "candidates": [
-                {k: v for k, v in e.items() if k != "score"}
-                | {"delta_bic": {s: v["delta_bic"] for s, v in e["score"].items()}}
-                for e in wf.candidates_tried
-            ],
+            **{k: doc[k] for k in ("named", "rejected", "calibration_parameters")},
+            **{k: doc[k] for k in ("fixed_unidentifiable", "table", "candidates")},
             **extra,
         }
         with open(a.json, "w") as fh:

@@ -208,6 +208,43 @@ class Workflow:
         """The report table: mean / max position [mm], orientation [deg], gap [mm]."""
         return rows_markdown(self.table())
 
+    def to_json(self) -> dict[str, Any]:
+        """Named effects with their parameters per series, the rejected candidates, every
+        candidate's scores, the calibration and the report table (JSON-able)."""
+        return {
+            "series": list(self.series),
+            "rigid_refitted": list(self.rigid),
+            "noise_m": self.noise_m,
+            "named": self.named,
+            "steps": [
+                {
+                    "round": s["round"],
+                    "effect": s["effect"],
+                    "delta_bic": {k: v["delta_bic"] for k, v in s["score"].items()},
+                    "cross_gain": s["cross_gain"],
+                    "parameters": {
+                        k: {n: list(vs) for n, vs in ps.items()}
+                        for k, ps in s["parameters"].items()
+                    },
+                }
+                for s in self.steps
+            ],
+            "rejected": [{"round": e["round"], "effect": e["effect"]} for e in self.rejected],
+            "candidates": [
+                {k: v for k, v in e.items() if k != "score"}
+                | {"delta_bic": {s: v["delta_bic"] for s, v in e["score"].items()}}
+                for e in self.candidates_tried
+            ],
+            "calibration_parameters": {
+                k: {n: list(vs) for n, vs in f.parameters().items()}
+                for k, f in self.calibration.fitted.items()
+            },
+            "fixed_unidentifiable": {
+                k: f.identifiability["dropped"] for k, f in self.calibration.fitted.items()
+            },
+            "table": self.table(),
+        }
+
 
 def _relative_gain(before: dict, after: dict, which: int | None = None) -> dict[str, float]:
     """Relative decrease of the cross-series error per direction: of the position RMS

@@ -29,6 +29,13 @@ def register(sub) -> argparse.ArgumentParser:
     p.add_argument(
         "recording", metavar="REC.h5", help="recording with robot log, tool, static dwells"
     )
+    p.add_argument(
+        "--validate-on",
+        metavar="OTHER.h5",
+        help="6-DOF pose recordings (robtraj import --format pose-csv): name an effect only "
+        "when, fitted on either recording, it also predicts the other one better "
+        "(cross-series rule of docs/real_ur10.md)",
+    )
     p.add_argument("--json", metavar="OUT", help="write the result (DESIGN section 8)")
     p.add_argument(
         "--report", metavar="DIR", help="write figures: the gap step by step, residual structure"
@@ -47,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
     from ._calibrate import check_leds_seen
 
     _output.check([args.json], [args.report], force=args.force)
+    if args.validate_on:
+        return _cross_series(args)
     rec = read_recording(args.recording)
     check_leds_seen(rec, args.recording)
     with progress_status("discrepancy") as say:
@@ -93,3 +102,42 @@ def run(args: argparse.Namespace) -> int:
             figs = [Path(args.report) / Path(f).relative_to(tmp) for f in res.figures(tmp)]
         print(f"figures: {', '.join(str(f) for f in figs)}")
     return 0 if doc["converged"] else NOT_CONVERGED
+
+
+def _cross_series(args: argparse.Namespace) -> int:
+    """The cross-series workflow (`robtraj.analysis.real_data.run_workflow`) on two pose
+    recordings: series A is REC.h5, series B the --validate-on recording."""
+    from .._errors import UserError
+    from .._progress import progress_status
+    from ..analysis import real_data as rd
+    from ..recording import read_recording
+
+    if args.report:
+        raise UserError("--report is not available with --validate-on (use --json)")
+    series = {}
+    for key, path in (("A", args.recording), ("B", args.validate_on)):
+        rec = read_recording(path)
+        if rec.probe is None or rec.robot is None:
+            raise UserError(
+                f"{path}: --validate-on needs 6-DOF pose recordings with a joint log "
+                "(robtraj import --format pose-csv); an LED recording is validated on its "
+                "own held-out time blocks without it"
+            )
+        series[key] = rd.series_from_recording(rec, key)
+    with progress_status("discrepancy") as say:
+        wf = rd.run_workflow(series, progress=say)
+    print(
+        f"A = {args.recording} ({series['A'].n} poses), B = {args.validate_on} ({series['B'].n} poses)"
+    )
+    for s in wf.steps:
+        bic = ", ".join(f"{k} {v['delta_bic']:.0f}" for k, v in s["score"].items())
+        gain = ", ".join(f"{k} {100 * v:+.1f} %" for k, v in s["cross_gain"].items())
+        print(f"+ {s['effect']} (round {s['round']}): ΔBIC {bic}; cross-series gain {gain}")
+    for e in wf.rejected:
+        gain = ", ".join(f"{k} {100 * v:+.1f} %" for k, v in e["cross_gain"].items())
+        print(f"  not named: {e['effect']} (fits better, predicts the other series by {gain})")
+    if not wf.steps:
+        print("no effect improves the prediction of the other series")
+    print(wf.markdown())
+    _output.write_json(args.json, wf.to_json())
+    return 0

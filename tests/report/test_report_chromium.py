@@ -150,7 +150,9 @@ def test_optotrak_report(optotrak):
     lay = check_layout(optotrak, optotrak.with_name("screenshot.png"))
     text = optotrak.read_text()
     assert "no robot log" in text and "camera (tracker) frame" in text
-    assert text.count("Left out:") == 3  # calibration, ISO 9283, path deviation
+    # the 4 virtual points of a 6-DOF pose carry no LED noise: no noise model to show
+    assert "no LED noise of their own" in text
+    assert text.count("Left out:") == 4  # calibration, ISO 9283, path deviation
     assert {i["src"] for i in lay["images"]} == {
         "speed.png",
         "leds.png",
@@ -168,7 +170,9 @@ def test_ur10_report(ur10):
     text = ur10.read_text()
     assert "ur10, 6 joints" in text and "stand-in" in text
     assert "ISO 9283 and path deviation left out: no calibration" in text
-    assert text.count("Left out:") == 3
+    # the 4 virtual points of a 6-DOF pose carry no LED noise: no noise model to show
+    assert "no LED noise of their own" in text
+    assert text.count("Left out:") == 4
 
 
 @needs_data
