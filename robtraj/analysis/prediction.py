@@ -5,7 +5,9 @@ transforms that differ between campaigns are refitted on the other recording (by
 camera←base: the tracker stood elsewhere; optionally flange←tool: the tool was mounted
 again). The tool pose the model then predicts from the robot log is compared, frame by
 frame, with the measured one: the probe pose of a 6-DOF tracker (`robtraj import --format
-pose-csv`) or the per-frame fit of the LEDs with the calibration's constellation.
+pose-csv`: every frame probed) or else the per-frame fit of the LEDs with the
+calibration's constellation. LEDs the calibration never saw are left out (their
+positions are nominal, not measured).
 
 Errors: position of the tool origin [m] (camera frame, ``|t_measured − t_predicted|``)
 and orientation [rad] (angle of ``R_measuredᵀ R_predicted``). The gap is the position
@@ -162,7 +164,7 @@ def predict(
     hold = tuple(g for g in (*RIGID, "constellation") if g not in refit)
     calib = fit(rec, init=calibration, hold=hold, progress=progress)
 
-    if rec.probe is not None and len(rec.probe.time) >= 2:
+    if rec.probe is not None and len(rec.probe.time) == rec.time.size:  # a 6-DOF tracker
         time = np.asarray(rec.probe.time, float)
         measured = np.concatenate(
             [

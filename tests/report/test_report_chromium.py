@@ -150,9 +150,7 @@ def test_optotrak_report(optotrak):
     lay = check_layout(optotrak, optotrak.with_name("screenshot.png"))
     text = optotrak.read_text()
     assert "no robot log" in text and "camera (tracker) frame" in text
-    # the 4 virtual points of a 6-DOF pose carry no LED noise: no noise model to show
-    assert "no LED noise of their own" in text
-    assert text.count("Left out:") == 4  # calibration, ISO 9283, path deviation
+    assert text.count("Left out:") == 3  # calibration, ISO 9283, path deviation
     assert {i["src"] for i in lay["images"]} == {
         "speed.png",
         "leds.png",
