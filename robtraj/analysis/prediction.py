@@ -70,13 +70,14 @@ class Prediction:
         def listed(a):
             return [None if not np.isfinite(x) else float(x) for x in np.ravel(a)]
 
+        calib = self.calibration.to_json()
         return {
             "summary": self.summary(),
             "refit": list(self.refit),
             "measured_by": self.measured_by,
             "noise_m": self.noise_m,
-            "camera_from_base": _pose_json(self.calibration.camera_from_base),
-            "flange_from_tool": _pose_json(self.calibration.flange_from_tool),
+            "camera_from_base": calib["camera_from_base"],
+            "flange_from_tool": calib["flange_from_tool"],
             "converged": self.calibration.converged,
             "per_pose": {
                 "time_s": self.time.tolist(),
@@ -84,13 +85,6 @@ class Prediction:
                 "angle_error_rad": listed(self.angle_error),
             },
         }
-
-
-def _pose_json(p) -> dict[str, list[float]]:
-    return {
-        "position": np.asarray(p.position).tolist(),
-        "quaternion_wxyz": np.asarray(p.quaternion_wxyz).tolist(),
-    }
 
 
 def _se3(pose) -> jaxlie.SE3:
