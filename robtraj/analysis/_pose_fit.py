@@ -6,8 +6,9 @@ with identifiability and covariance, by the package's one engine
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -19,7 +20,15 @@ from scipy.cluster.vq import kmeans2
 
 from .._errors import UserError
 from ..estimate import covariance, identifiability, normal_at, robust_covariance, solve
-from ..model import Effects, camera_from_base_at, forward_kinematics, ur10
+from ..model import (
+    Effects,
+    camera_from_base_at,
+    dh_corrections,
+    effect_component_names,
+    flange_jacobian,
+    forward_kinematics,
+    ur10,
+)
 from ._pose_series import PoseSeries
 from ._quat import rotation_angle
 
@@ -27,6 +36,7 @@ from ._quat import rotation_angle
 _EFFECT_ORDER = (
     "joint_offset",
     "link_length",
+    "link_twist",
     "joint_compliance",
     "thermal_drift",
     "tracker_scale",
@@ -40,6 +50,13 @@ REGIONS = 10
 #: flange axis, d6/a6 ≡ probe offset, d2 + d3 + d4 along parallel axes 2–4 only as a
 #: sum, no gravity torque on joints 1 and 6), so that both series fix the same ones
 FIX_PREFERENCE = (
+    # Hayati's tilt only where consecutive axes are parallel (links 2 and 3); the last
+    # link's axis direction is the probe's orientation
+    "link_twist[0].beta",
+    "link_twist[3].beta",
+    "link_twist[4].beta",
+    "link_twist[5].beta",
+    "link_twist[5].alpha",
     "joint_compliance[0]",
     "joint_compliance[5]",
     "joint_offset[0]",
@@ -58,6 +75,7 @@ def _effect_sizes(n_joints: int = 6) -> dict[str, int]:
     return {
         "joint_offset": n_joints,
         "link_length": 2 * n_joints,
+        "link_twist": 2 * n_joints,
         "joint_compliance": n_joints,
         "thermal_drift": 3,
         "tracker_scale": 1,
@@ -67,11 +85,9 @@ def _effect_sizes(n_joints: int = 6) -> dict[str, int]:
 def parameter_names(n_joints: int = 6) -> list[str]:
     names = [f"camera_from_base.{t}" for t in _TANGENT]
     names += [f"flange_from_probe.{t}" for t in _TANGENT]
-    names += [f"joint_offset[{j}]" for j in range(n_joints)]
-    names += [f"link_length[{j}].{c}" for j in range(n_joints) for c in ("d", "a")]
-    names += [f"joint_compliance[{j}]" for j in range(n_joints)]
-    names += [f"thermal_drift[{k}]" for k in range(3)]
-    names += ["tracker_scale"]
+    zeros = Effects.zeros(n_joints)
+    for name in _EFFECT_ORDER:
+        names += effect_component_names(name, np.shape(getattr(zeros, name)))
     return names
 
 
@@ -93,6 +109,7 @@ def _effects_of(theta) -> Effects:
         e,
         joint_offset=theta[_SL["joint_offset"]],
         link_length=theta[_SL["link_length"]].reshape(6, 2),
+        link_twist=theta[_SL["link_twist"]].reshape(6, 2),
         joint_compliance=theta[_SL["joint_compliance"]],
         thermal_drift=theta[_SL["thermal_drift"]],
         tracker_scale=theta[_SL["tracker_scale"]][0],
@@ -105,8 +122,8 @@ def _flange(eff: Effects, joints, torque) -> jaxlie.SE3:
     the parameters; `flange_poses` recomputes them inside every Jacobian column)."""
     robot = ur10()
     q = joints + eff.joint_offset + eff.joint_compliance * torque
-    dh_delta = jnp.zeros_like(robot.dh).at[:, :2].set(eff.link_length)
-    return jax.vmap(lambda qq: forward_kinematics(robot, qq, dh_delta))(q)
+    dh_delta, tilt = dh_corrections(robot, eff)
+    return jax.vmap(lambda qq: forward_kinematics(robot, qq, dh_delta, tilt))(q)
 
 
 def _predict(theta, z0, x0, joints, drift, torque):
@@ -133,16 +150,64 @@ def _raw_residual(theta, z0, x0, joints, drift, torque, measured):
 
 _predict_jit = jax.jit(lambda *a: _predict(*a))
 
+#: θ entries that act on the flange pose through the kinematics, and the rest
+_KINEMATIC = np.r_[
+    _SL["joint_offset"], _SL["link_length"], _SL["link_twist"], _SL["joint_compliance"]
+]
+_GLOBAL = np.setdiff1d(np.arange(N_PARAMS), _KINEMATIC)
 
-@jax.jit
-def _residual_jit(theta, z0, x0, joints, drift, torque, measured):
-    return _raw_residual(theta, z0, x0, joints, drift, torque, measured)
 
+def _jacobian(theta, z0, x0, joints, drift, torque, measured):
+    """The residual `(N, 6)` and its Jacobian `(N, 6, P)` by the chain rule: the
+    kinematic columns are the flange twists of `robtraj.model.flange_jacobian` carried
+    through the residual's derivative in a flange twist (6 tangents per pose), the
+    others forward-mode (16 tangents) — not forward-mode through the kinematics."""
+    robot = ur10()
+    eff = _effects_of(theta)
+    q = joints + eff.joint_offset + eff.joint_compliance * torque
+    dh_delta, tilt = dh_corrections(robot, eff)
+    flange, g = jax.vmap(lambda qq: flange_jacobian(robot, qq, dh_delta, tilt))(q)
+    # (N, 6, joints, 5) → θ columns; a joint offset moves θ, a compliance τ·θ
+    n = q.shape[0]
+    kin = jnp.concatenate(
+        [
+            g[..., 0],
+            g[..., 1:3].reshape(n, 6, -1),
+            g[..., 3:5].reshape(n, 6, -1),
+            g[..., 0] * torque[:, None, :],
+        ],
+        -1,
+    )
 
-@jax.jit
-def _jacobian_jit(theta, z0, x0, joints, drift, torque, measured):
-    r = _raw_residual(theta, z0, x0, joints, drift, torque, measured)
-    j = jax.jacfwd(_raw_residual)(theta, z0, x0, joints, drift, torque, measured)
+    def residual(theta_global, xi):
+        t = theta.at[_GLOBAL].set(theta_global)
+        e = _effects_of(t)
+        z = jaxlie.SE3(z0) @ jaxlie.SE3.exp(t[:6])
+        x = jaxlie.SE3(x0) @ jaxlie.SE3.exp(t[6:12])
+        f = jax.vmap(lambda a, b: jaxlie.SE3.exp(a) @ jaxlie.SE3(b))(xi, flange.wxyz_xyz)
+        pose = camera_from_base_at(z, e, drift) @ f @ x
+        pos = (1.0 + e.tracker_scale) * pose.translation()
+        dp = pos - measured[:, 4:]
+        dr = jax.vmap(lambda a, b: (jaxlie.SO3(a).inverse() @ jaxlie.SO3(b)).log())(
+            measured[:, :4], pose.rotation().wxyz
+        )
+        return jnp.concatenate([dp, dr], -1)
+
+    xi0 = jnp.zeros((n, 6), theta.dtype)
+    tg = theta[_GLOBAL]
+    r = residual(tg, xi0)
+    j_global = jax.jacfwd(residual)(tg, xi0)  # (N, 6, 16)
+    # each pose's residual depends on its own twist only: 6 tangents, all poses at once
+    j_xi = jnp.stack(
+        [
+            jax.jvp(lambda e: residual(tg, e), (xi0,), (jnp.zeros_like(xi0).at[:, k].set(1.0),))[1]
+            for k in range(6)
+        ],
+        -1,
+    )  # (N, 6, 6)
+    j = jnp.zeros((n, 6, N_PARAMS), r.dtype)
+    j = j.at[..., _GLOBAL].set(j_global)
+    j = j.at[..., _KINEMATIC].set(jnp.einsum("nrk,nkp->nrp", j_xi, kin))
     return r, j
 
 
@@ -192,7 +257,7 @@ class PoseFit:
     parameters (`np.nan` elsewhere), the larger of `sigma_model` (``s²(JᵀWJ)⁻¹`` with
     ``s²=χ²/(n−p)``) and the delete-one-region jackknife over `REGIONS` regions of joint
     space (`robtraj.estimate.robust_covariance`), which does not shrink when the residual
-    is model error shared by neighbouring poses.
+    is model error shared by neighbouring poses (computed when first asked for).
     """
 
     series: str
@@ -201,7 +266,7 @@ class PoseFit:
     z0: np.ndarray
     x0: np.ndarray
     free: np.ndarray
-    sigma: np.ndarray
+    sigma_model: np.ndarray
     chi2: float
     n_residuals: int
     block_sigma: tuple[float, float]
@@ -210,7 +275,14 @@ class PoseFit:
     angle_error: np.ndarray
     iterations: int
     converged: bool
-    sigma_model: np.ndarray | None = None
+    #: the region jackknife's σ on demand (None: a cross-series prediction, no effects)
+    _robust: Callable[[], np.ndarray] | None = dataclasses.field(default=None, repr=False)
+
+    @functools.cached_property
+    def sigma(self) -> np.ndarray:
+        if self._robust is None or not np.any(self.free[12:]):
+            return self.sigma_model
+        return np.fmax(self.sigma_model, self._robust())
 
     @property
     def n_free(self) -> int:
@@ -223,6 +295,11 @@ class PoseFit:
     @property
     def flange_from_probe(self) -> np.ndarray:
         return np.asarray((jaxlie.SE3(self.x0) @ jaxlie.SE3.exp(self.theta[6:12])).wxyz_xyz)
+
+    def predict(self, series: PoseSeries) -> np.ndarray:
+        """camera←probe `(N, 7)` (``wxyz_xyz``, m) this fit predicts for `series`' poses."""
+        args = (self.theta, self.z0, self.x0, series.joints, series.drift_variable, series.torque)
+        return np.asarray(_predict_jit(*(jnp.asarray(a) for a in args)))
 
     def effect_values(self) -> dict[str, list]:
         return {e: self.theta[_SL[parse_effect_spec(e)[0]]].tolist() for e in self.estimated}
@@ -366,15 +443,15 @@ def pose_normal(theta, d: PoseData):
             .set(jax.jacfwd(r12)(theta[:12]))
         )
     else:
-
-        def rf(t):
-            return (
-                d.sqrt_w * _raw_residual(t, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
-            ).reshape(-1)
-
-        r = rf(theta)
-        j = jax.jacfwd(rf)(theta)
+        r, j = _weighted_jacobian(theta, d)
+        r, j = r.reshape(-1), j.reshape(r.size, -1)
     return j.T @ j, -(j.T @ r), r @ r
+
+
+def _weighted_jacobian(theta, d: PoseData):
+    """``sqrt(w)``-weighted residual `(N, 6)` and Jacobian `(N, 6, P)`."""
+    r, j = _jacobian(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
+    return d.sqrt_w * r, d.sqrt_w[..., None] * j
 
 
 def _data(z0, x0, series: PoseSeries, w: np.ndarray, rigid_only: bool) -> PoseData:
@@ -454,10 +531,10 @@ def fit_poses(
     cov_unit, rank = covariance(h, free)
     cov = cov_unit * (sol.cost / max(1, n_res - rank))
     sigma = np.where(free, np.sqrt(np.clip(np.diag(cov), 0.0, None)), np.nan)
-    sigma_robust = np.full_like(sigma, np.nan)
-    if fixed is None:  # a calibration, not a cross-series prediction
+
+    def robust():
         cov_r = _region_jackknife(theta, data, free, series)
-        sigma_robust = np.where(free, np.sqrt(np.clip(np.diag(cov_r), 0.0, None)), np.nan)
+        return np.where(free, np.sqrt(np.clip(np.diag(cov_r), 0.0, None)), np.nan)
     pred = np.asarray(
         _predict_jit(jnp.asarray(theta), *(data.z0, data.x0, data.joints, data.drift, data.torque))
     )
@@ -469,7 +546,6 @@ def fit_poses(
         z0=np.asarray(z0),
         x0=np.asarray(x0),
         free=free,
-        sigma=np.fmax(sigma, sigma_robust),
         sigma_model=sigma,
         chi2=sol.cost,
         n_residuals=n_res,
@@ -479,6 +555,7 @@ def fit_poses(
         angle_error=ang,
         iterations=sol.steps,
         converged=sol.converged,
+        _robust=robust if fixed is None else None,
     )
 
 
@@ -486,12 +563,7 @@ def fit_poses(
 def _region_terms(theta, d: PoseData, onehot):
     """Per region (`onehot` `(N, G)` assigns the poses): the normal matrix ``J_gᵀW J_g``
     `(G, P, P)` and score ``J_gᵀW r_g`` `(G, P)` of the weighted 6-D pose residuals."""
-
-    def rf(t):
-        return d.sqrt_w * _raw_residual(t, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
-
-    r = rf(theta)
-    j = jax.jacfwd(rf)(theta)  # (N, 6, P)
+    r, j = _weighted_jacobian(theta, d)
     return (
         jnp.einsum("ng,nkp,nkq->gpq", onehot, j, j),
         -jnp.einsum("ng,nkp,nk->gp", onehot, j, r),

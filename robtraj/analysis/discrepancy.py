@@ -25,7 +25,7 @@ from scipy import stats
 
 from .._errors import UserError
 from ..estimate import observation_angles, observation_noise
-from ..model import EFFECT_NAMES
+from ..model import EFFECT_NAMES, LIBRARY
 from ..recording import Recording
 
 #: significance of a candidate effect, before the Bonferroni division by the candidates
@@ -258,10 +258,10 @@ class _HeldOut:
     """Two-fold cross-validation over contiguous time blocks (odd against even): the
     gap of a model on the blocks it was not fitted to [m]."""
 
-    def __init__(self, rec: Recording, weights: np.ndarray, var: np.ndarray):
+    def __init__(self, rec: Recording, weights: np.ndarray, var: np.ndarray, space: tuple):
         from ..estimate.calibration import fit, predict_residuals
 
-        self._fit, self._predict = fit, predict_residuals
+        self._fit, self._predict, self.space = fit, predict_residuals, space
         n = rec.n_frames
         self.fold = (np.arange(n) * HELDOUT_BLOCKS // n) % 2
         self.rec, self.weights, self.var3 = rec, weights, 3.0 * var
@@ -270,9 +270,7 @@ class _HeldOut:
         r2, v3 = [], []
         for f in (0, 1):
             train = np.where((self.fold != f)[:, None], self.weights, 0.0)
-            res = self._fit(
-                self.rec, estimate=estimate, weights=train, init=init, space=EFFECT_NAMES
-            )
+            res = self._fit(self.rec, estimate=estimate, weights=train, init=init, space=self.space)
             d = self._predict(self.rec, res)[self.fold == f]
             v = _aligned(self.rec, res, self.var3)[self.fold == f]
             use = np.isfinite(d[..., 0]) & np.isfinite(v)
@@ -303,7 +301,7 @@ def _value_of(res, pname: str) -> float:
     idx, _, comp = rest.partition("]")
     v = v[int(idx)]
     if comp.startswith("."):
-        v = v[{"d": 0, "a": 1}.get(comp[1:], {"x": 0, "y": 1, "z": 2}.get(comp[1:], 0))]
+        v = v[{"d": 0, "a": 1, "alpha": 0, "beta": 1, "x": 0, "y": 1, "z": 2}[comp[1:]]]
     return float(v)
 
 
@@ -329,7 +327,8 @@ def discover(
 ) -> DiscrepancyResult:
     """Run the discrepancy workflow on `rec` (needs a robot log and a tool).
 
-    `candidates`: effect names to try (default: the whole library of DESIGN section 7).
+    `candidates`: effect names to try (default: the library of DESIGN section 7,
+    `robtraj.model.LIBRARY`).
     While the gap exceeds its floor, each round scores every remaining candidate at once
     with Rao's score test (`robtraj.estimate.calibration.score_effects`: one pass over
     the recording, one compilation); the significant ones are refitted in order of their
@@ -338,10 +337,10 @@ def discover(
     named. The search stops when the gap is within its floor, when no candidate
     qualifies, or when no structure is left against any variable.
     """
-    from ..estimate.calibration import fit, score_effects
+    from ..estimate.calibration import fit, library_space, score_effects
 
     say = progress or (lambda _msg: None)
-    candidates = tuple(EFFECT_NAMES if candidates is None else candidates)
+    candidates = tuple(LIBRARY if candidates is None else candidates)
     bad = [c for c in candidates if c not in EFFECT_NAMES]
     if bad:
         raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
@@ -353,8 +352,9 @@ def discover(
     variables = _frame_variables(rec, angles)
 
     say("nominal fit")
-    # every fit of the search in the library's space: one compilation per recording
-    current = fit(rec, weights=weights, space=EFFECT_NAMES)
+    # every fit of the search in one space (library and candidates): one compilation
+    space = library_space(candidates)
+    current = fit(rec, weights=weights, space=space)
     var3 = _aligned(rec, current, 3.0 * var)
     weights_c = _aligned(rec, current, weights)
     n_obs = int(np.isfinite(current.residuals[..., 0]).sum()) * 3
@@ -371,7 +371,7 @@ def discover(
         return _gap_floor(res, var3, noise_model.level_rel_se)
 
     floor = floor_of(current)
-    heldout = _HeldOut(rec, weights, var)
+    heldout = _HeldOut(rec, weights, var, space)
     heldout_gap: float | None = None
     steps: list[Step] = []
     rejected: list[dict[str, Any]] = []
@@ -400,7 +400,7 @@ def discover(
         accepted = None
         for cand in significant:
             say(f"refitting with {cand}")
-            r = fit(rec, estimate=(*named, cand), weights=weights, init=current, space=EFFECT_NAMES)
+            r = fit(rec, estimate=(*named, cand), weights=weights, init=current, space=space)
             k = _free_count(r, cand)
             if k == 0:
                 continue

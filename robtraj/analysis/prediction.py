@@ -123,7 +123,13 @@ def _check(rec: Recording, calib: CalibrationResult) -> None:
         raise UserError("the recording has no robot log (/robot/joints): nothing to predict from")
     n = rec.robot.joints.shape[1]
     sizes = {k: np.size(v) for k, v in calib.effects.items() if k != "time_offset"}
-    per_joint = {"joint_offset": n, "joint_compliance": n, "backlash": n, "link_length": 2 * n}
+    per_joint = {
+        "joint_offset": n,
+        "joint_compliance": n,
+        "backlash": n,
+        "link_length": 2 * n,
+        "link_twist": 2 * n,
+    }
     wrong = [k for k, size in per_joint.items() if k in sizes and sizes[k] != size]
     if wrong:
         raise UserError(

@@ -19,7 +19,8 @@ would otherwise estimate for points that are exact by construction.
 
 Parameters: a tangent-space correction of camera←base (6) and flange←probe (6) around
 a closed-form start (Shah's robot-world/hand-eye solution), and the `Effects` fields
-``joint_offset`` (6), ``link_length`` (6×2 ``[Δd, Δa]``), ``joint_compliance`` (6),
+``joint_offset`` (6), ``link_length`` (6×2 ``[Δd, Δa]``), ``link_twist`` (6×2
+``[Δα, Δβ]``), ``joint_compliance`` (6),
 ``thermal_drift`` (3) and ``tracker_scale`` (1), solved by the package's one engine
 (`robtraj.estimate.solve`). Identifiability (`robtraj.estimate.identifiability`): null
 directions of the column-scaled normal matrix name the parameters that cannot be told
@@ -84,12 +85,14 @@ __all__ = [
 CANDIDATES = (
     "joint_offset",
     "link_length",
+    "link_twist",
     "joint_compliance",
     "joint_compliance[1,2]",
     "thermal_drift",
 )
-#: the kinematic calibration of task item 1
-CALIBRATION = ("joint_offset", "link_length")
+#: the kinematic calibration: the full geometric error set (DH lengths, twists and
+#: Hayati's tilt of parallel axes, zero offsets), its degeneracies fixed by identifiability
+CALIBRATION = ("joint_offset", "link_length", "link_twist")
 #: smallest relative improvement of the cross-series error that counts
 MIN_CROSS_GAIN = 0.02
 

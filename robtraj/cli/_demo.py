@@ -19,6 +19,7 @@ EFFECT_UNITS = {
     "time_offset": "s",
     "joint_offset": "rad",
     "link_length": "m",
+    "link_twist": "rad",
     "joint_compliance": "rad/(N·m)",
     "backlash": "rad",
     "led_angle_bias": "m",

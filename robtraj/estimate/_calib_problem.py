@@ -39,7 +39,14 @@ from ..model import (
 from ._calib_data import CalibrationData
 
 #: effects that change the flange pose (the forward kinematics must be re-run per step)
-KINEMATIC_EFFECTS = ("time_offset", "joint_offset", "link_length", "joint_compliance", "backlash")
+KINEMATIC_EFFECTS = (
+    "time_offset",
+    "joint_offset",
+    "link_length",
+    "link_twist",
+    "joint_compliance",
+    "backlash",
+)
 #: effects that act on the LED positions given the tool pose
 LED_EFFECTS = ("led_angle_bias", "tracker_scale")
 

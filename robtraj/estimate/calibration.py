@@ -56,7 +56,7 @@ import jaxlie
 import numpy as np
 
 from .._errors import UserError
-from ..model import EFFECT_NAMES, Effects
+from ..model import EFFECT_NAMES, LIBRARY, Effects, effect_component_names
 from ..recording import Pose, Recording
 from . import _calib_problem as cp
 from ._calib_data import CalibrationData, prepare
@@ -145,13 +145,7 @@ def _global_names(effects: Effects, free: tuple[str, ...]) -> list[str]:
     names = [f"camera_from_base.{t}" for t in _TANGENT]
     names += [f"flange_from_tool.{t}" for t in _TANGENT]
     for name in free:
-        shape = np.shape(getattr(effects, name))
-        if shape == ():
-            names.append(name)
-        elif name == "link_length":
-            names += [f"link_length[{j}].{c}" for j in range(shape[0]) for c in ("d", "a")]
-        else:
-            names += [f"{name}[{j}]" for j in range(int(np.prod(shape)))]
+        names += effect_component_names(name, np.shape(getattr(effects, name)))
     return names
 
 
@@ -449,8 +443,9 @@ def predict_residuals(recording: Recording, calibration: CalibrationResult) -> n
 
     Serves held-out evaluation: fit with weights zero on some frames, then compare the
     prediction there."""
-    # the whole library's space: one compilation whatever the calibration estimated
-    st = _setup(recording, (), calibration, None, None, lambda _m: None, False, EFFECT_NAMES)
+    # the library's space: one compilation whatever the calibration estimated
+    space = library_space(calibration.estimated, tuple(calibration.effects))
+    st = _setup(recording, (), calibration, None, None, lambda _m: None, False, space)
     data = st.data
     d, _ = cp.evaluate(
         jnp.zeros(st.q), st.bundle.problem.constellation, st.bundle.problem, st.bundle.chunks
@@ -551,7 +546,8 @@ def score_effects(
     if bad:
         raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
     w = current.weights if weights is None else weights
-    st = _setup(recording, EFFECT_NAMES, current, w, chunk, lambda _m: None)
+    space = library_space(candidates, current.estimated, tuple(current.effects))
+    st = _setup(recording, space, current, w, chunk, lambda _m: None)
     H = st.h0
     b = np.asarray(st.normal0[1])
     fixed_now = set(current.identifiability.get("fixed_parameters", []))
@@ -585,6 +581,14 @@ def score_effects(
             "fixed": [d["parameter"] for d in ident["dropped"]],
         }
     return out
+
+
+def library_space(*extra: Sequence[str]) -> tuple[str, ...]:
+    """The library (`robtraj.model.LIBRARY`) and the effects named in `extra`, in
+    `EFFECT_NAMES` order: the problem space of the discrepancy search, shared by its
+    fits, score tests and held-out predictions so that they compile once."""
+    wanted = set(LIBRARY).union(*map(set, extra))
+    return tuple(n for n in EFFECT_NAMES if n in wanted)
 
 
 def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()) -> _Setup:

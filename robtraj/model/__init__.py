@@ -6,11 +6,19 @@ the effect library.
 """
 
 from ._camera import CameraModel, emission_angle, in_volume, noise_sigma
-from ._effects import BIAS_REFERENCE_ANGLE, EFFECT_NAMES, Effects, parse_effect
+from ._effects import (
+    BIAS_REFERENCE_ANGLE,
+    EFFECT_NAMES,
+    LIBRARY,
+    Effects,
+    effect_component_names,
+    parse_effect,
+)
 from ._kinematics import (
     BUILTIN_ROBOTS,
     RobotModel,
     abb_irb2400_16,
+    flange_jacobian,
     forward_kinematics,
     gravity_torque,
     inverse_kinematics,
@@ -20,6 +28,7 @@ from ._kinematics import (
 )
 from ._measurement import (
     camera_from_base_at,
+    dh_corrections,
     effective_joints,
     flange_poses,
     interpolate_joints,
@@ -35,11 +44,15 @@ __all__ = [
     "CameraModel",
     "EFFECT_NAMES",
     "Effects",
+    "LIBRARY",
     "RobotModel",
     "abb_irb2400_16",
     "camera_from_base_at",
+    "dh_corrections",
+    "effect_component_names",
     "effective_joints",
     "emission_angle",
+    "flange_jacobian",
     "flange_poses",
     "forward_kinematics",
     "gravity_torque",

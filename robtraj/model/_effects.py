@@ -28,6 +28,11 @@ class Effects(eqx.Module):
       tracker time t sees the robot at robot time t + τ.
     - `joint_offset` `(joints,)` [rad]: zero-position error added to each joint.
     - `link_length` `(joints, 2)` [m]: errors of the DH lengths ``[Δd, Δa]``.
+    - `link_twist` `(joints, 2)` [rad]: errors of the link's axis direction ``[Δα, Δβ]``:
+      Δα of the DH twist (about xᵢ) and Hayati's Δβ, a turn of frame i about its own
+      yᵢ (the link transform becomes ``… · Rx(α + Δα) · Ry(Δβ)``). Δβ is what tilts a
+      joint axis parallel to the previous one; where consecutive axes are not parallel
+      the DH parameters already cover it and the engine fixes it as unidentifiable.
     - `joint_compliance` `(joints,)` [rad/(N·m)]: deflection = compliance · gravity torque.
     - `backlash` `(joints,)` [rad]: offset of sign equal to the joint's direction of
       motion (the last direction is held while the joint stands still).
@@ -42,6 +47,7 @@ class Effects(eqx.Module):
     time_offset: Float[Array, ""]
     joint_offset: Float[Array, " joints"]
     link_length: Float[Array, "joints 2"]
+    link_twist: Float[Array, "joints 2"]
     joint_compliance: Float[Array, " joints"]
     backlash: Float[Array, " joints"]
     led_angle_bias: Float[Array, ""]
@@ -55,6 +61,7 @@ class Effects(eqx.Module):
             time_offset=jnp.zeros(()),
             joint_offset=z,
             link_length=jnp.zeros((n_joints, 2)),
+            link_twist=jnp.zeros((n_joints, 2)),
             joint_compliance=z,
             backlash=z,
             led_angle_bias=jnp.zeros(()),
@@ -92,6 +99,21 @@ class Effects(eqx.Module):
 
 
 EFFECT_NAMES = tuple(f.name for f in dataclasses.fields(Effects))
+#: the effect library of DESIGN section 7 that the discrepancy search scores by default
+#: (`link_twist` is fitted when asked for; the pose-level workflow tries it)
+LIBRARY = tuple(n for n in EFFECT_NAMES if n != "link_twist")
+#: names of the two columns of the per-joint ``(joints, 2)`` effects
+_ROW_COMPONENTS = {"link_length": ("d", "a"), "link_twist": ("alpha", "beta")}
+
+
+def effect_component_names(name: str, shape: tuple[int, ...]) -> list[str]:
+    """Parameter names of the entries of effect `name` of `shape`, in ``ravel`` order:
+    ``time_offset``, ``joint_offset[2]``, ``link_length[1].a``, ``link_twist[2].beta``."""
+    if shape == ():
+        return [name]
+    if name in _ROW_COMPONENTS:
+        return [f"{name}[{j}].{c}" for j in range(shape[0]) for c in _ROW_COMPONENTS[name]]
+    return [f"{name}[{j}]" for j in range(int(np.prod(shape)))]
 
 
 def parse_effect(spec: str, n_joints: int = 6) -> tuple[str, np.ndarray]:

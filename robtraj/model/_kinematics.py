@@ -95,14 +95,16 @@ def robot_from_log(model: str | None, dh: np.ndarray | None) -> RobotModel:
     return BUILTIN_ROBOTS[model]()
 
 
-def _dh_matrix(d, a, alpha, theta):
+def _dh_matrix(d, a, alpha, theta, beta):
+    """``Rz(θ) · Tz(d) · Tx(a) · Rx(α) · Ry(β)`` in closed form."""
     ct, st, ca, sa = jnp.cos(theta), jnp.sin(theta), jnp.cos(alpha), jnp.sin(alpha)
+    cb, sb = jnp.cos(beta), jnp.sin(beta)
     z, o = jnp.zeros_like(theta), jnp.ones_like(theta)
     return jnp.stack(
         [
-            jnp.stack([ct, -st * ca, st * sa, a * ct]),
-            jnp.stack([st, ct * ca, -ct * sa, a * st]),
-            jnp.stack([z, sa, ca, d]),
+            jnp.stack([ct * cb - st * sa * sb, -st * ca, ct * sb + st * sa * cb, a * ct]),
+            jnp.stack([st * cb + ct * sa * sb, ct * ca, st * sb - ct * sa * cb, a * st]),
+            jnp.stack([-ca * sb, sa, ca * cb, d]),
             jnp.stack([z, z, z, o]),
         ]
     )
@@ -114,29 +116,83 @@ def _compose(a: Float[Array, "... 4 4"], b: Float[Array, "... 4 4"]) -> Float[Ar
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
-def joint_frames(dh: Float[Array, "joints 4"], q: Float[Array, " joints"]) -> Float[Array, "n 4 4"]:
-    """Homogeneous transforms base←frame_i for i = 0 … joints (frame 0 is the base)."""
+def joint_frames(
+    dh: Float[Array, "joints 4"],
+    q: Float[Array, " joints"],
+    tilt: Float[Array, " joints"] | None = None,
+) -> Float[Array, "n 4 4"]:
+    """Homogeneous transforms base←frame_i for i = 0 … joints (frame 0 is the base).
+
+    `tilt` [rad]: Hayati's turn of each frame about its own y axis (zero if None)."""
+    tilt = jnp.zeros_like(q) if tilt is None else tilt.astype(q.dtype)
 
     def step(t, row_q):
-        row, qi = row_q
-        t = _compose(t, _dh_matrix(row[0], row[1], row[2], qi + row[3]))
+        row, qi, bi = row_q
+        t = _compose(t, _dh_matrix(row[0], row[1], row[2], qi + row[3], bi))
         return t, t
 
     eye = jnp.eye(4, dtype=q.dtype)
-    _, frames = jax.lax.scan(step, eye, (dh.astype(q.dtype), q))
+    _, frames = jax.lax.scan(step, eye, (dh.astype(q.dtype), q, tilt))
     return jnp.concatenate([eye[None], frames], axis=0)
 
 
 def forward_kinematics(
-    robot: RobotModel, q: Float[Array, " joints"], dh_delta: Float[Array, "joints 4"] | None = None
+    robot: RobotModel,
+    q: Float[Array, " joints"],
+    dh_delta: Float[Array, "joints 4"] | None = None,
+    tilt: Float[Array, " joints"] | None = None,
 ) -> jaxlie.SE3:
     """Flange (tool0) pose in the base frame for one joint vector `q` [rad].
 
-    `dh_delta` is added to the DH table (link-length and offset corrections).
+    `dh_delta` is added to the DH table (link-length, twist and offset corrections);
+    `tilt` [rad] turns each link frame about its y axis (Hayati's parameter).
     """
     dh = robot.dh if dh_delta is None else robot.dh + dh_delta
-    base_from_last = joint_frames(dh, q)[-1]
+    base_from_last = joint_frames(dh, q, tilt)[-1]
     return jaxlie.SE3.from_matrix(base_from_last) @ jaxlie.SE3(robot.last_from_flange)
+
+
+def flange_jacobian(
+    robot: RobotModel,
+    q: Float[Array, " joints"],
+    dh_delta: Float[Array, "joints 4"] | None = None,
+    tilt: Float[Array, " joints"] | None = None,
+) -> tuple[jaxlie.SE3, Float[Array, "6 joints 5"]]:
+    """base←flange (as `forward_kinematics`) and its derivatives in closed form.
+
+    Column ``[:, j, k]`` is the base-frame twist ``(v, ω)`` of the flange per unit change
+    of link j's ``[θ, d, a, α, β]`` (rad, m, m, rad, rad): a change δ moves the flange to
+    ``SE3.exp(δ · column) @ base_from_flange`` to first order. A joint angle turns what
+    lies beyond about zⱼ through its origin; d and a translate along zⱼ and the turned
+    xⱼ; α turns about that x axis and β about yⱼ₊₁, both through the next origin.
+    """
+    dh = robot.dh if dh_delta is None else robot.dh + dh_delta
+    frames = joint_frames(dh, q, tilt)
+    rot, origin = frames[:-1, :3, :3], frames[:-1, :3, 3]
+    nxt_origin, nxt_y = frames[1:, :3, 3], frames[1:, :3, 1]
+    z = rot[:, :, 2]
+    theta = q + dh[:, 3].astype(q.dtype)
+    x_turned = rot[:, :, 0] * jnp.cos(theta)[:, None] + rot[:, :, 1] * jnp.sin(theta)[:, None]
+    zero = jnp.zeros_like(z)
+
+    def turn(axis, through):
+        return jnp.concatenate([jnp.cross(through, axis), axis], -1)
+
+    def shift(axis):
+        return jnp.concatenate([axis, zero], -1)
+
+    cols = jnp.stack(
+        [
+            turn(z, origin),
+            shift(z),
+            shift(x_turned),
+            turn(x_turned, nxt_origin),
+            turn(nxt_y, nxt_origin),
+        ],
+        -1,
+    )  # (joints, 6, 5)
+    pose = jaxlie.SE3.from_matrix(frames[-1]) @ jaxlie.SE3(robot.last_from_flange)
+    return pose, jnp.moveaxis(cols, 0, 1)
 
 
 def gravity_torque(

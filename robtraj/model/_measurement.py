@@ -2,8 +2,8 @@
 
 ``y_tk = (1 + s) · camera_from_base(T) · flange(q(t + τ)) · flange_from_tool ·
 (p_k + b(θ_tk) n_k)`` where the flange pose is the forward kinematics of the joint
-log interpolated at robot time t + τ, with joint offsets, backlash, compliance and
-link-length errors applied.
+log interpolated at robot time t + τ, with joint offsets, backlash, compliance,
+link-length and link-twist errors applied.
 """
 
 from __future__ import annotations
@@ -82,6 +82,21 @@ def effective_joints(
     )
 
 
+def dh_corrections(
+    robot: RobotModel, effects: Effects
+) -> tuple[Float[Array, "joints 4"], Float[Array, " joints"]]:
+    """The geometric effects as a DH-table correction ``[Δd, Δa, Δα, 0]`` and Hayati's
+    tilt Δβ per link (the arguments of `forward_kinematics`)."""
+    dh_delta = (
+        jnp.zeros_like(robot.dh)
+        .at[:, :2]
+        .set(effects.link_length)
+        .at[:, 2]
+        .set(effects.link_twist[:, 0])
+    )
+    return dh_delta, effects.link_twist[:, 1]
+
+
 def flange_poses(
     robot: RobotModel,
     effects: Effects,
@@ -89,10 +104,10 @@ def flange_poses(
     direction: Float[Array, "n joints"],
 ) -> jaxlie.SE3:
     """base←flange for each frame (batched SE3) with the kinematic effects applied."""
-    dh_delta = jnp.zeros_like(robot.dh).at[:, :2].set(effects.link_length)
+    dh_delta, tilt = dh_corrections(robot, effects)
 
     def one(qq, dd):
-        return forward_kinematics(robot, effective_joints(robot, effects, qq, dd), dh_delta)
+        return forward_kinematics(robot, effective_joints(robot, effects, qq, dd), dh_delta, tilt)
 
     return jax.vmap(one)(q, direction)
 

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import UserError
+from ..model import effect_component_names
 from ._discrepancy_figures import noise_figure
 from ._figures import (
     deviation_figure,
@@ -30,6 +31,7 @@ _EFFECT_UNITS = {
     "time_offset": ("ms", 1e3),
     "joint_offset": ("µrad", 1e6),
     "link_length": ("µm", 1e6),
+    "link_twist": ("µrad", 1e6),
     "joint_compliance": ("µrad/(N·m)", 1e6),
     "backlash": ("µrad", 1e6),
     "led_angle_bias": ("µm", 1e6),
@@ -48,15 +50,6 @@ _KEY_CHARACTERISTICS = [
     ("paths", "RT_mm"),
     ("corners", "CR_max_mm"),
 ]
-
-
-def _component_names(name: str, value: np.ndarray) -> list[str]:
-    """Covariance parameter names of the entries of one effect, in `value.ravel()` order."""
-    if value.ndim == 0:
-        return [name]
-    if value.ndim == 2 and value.shape[1] == 2:  # link_length rows [Δd, Δa]
-        return [f"{name}[{i}].{c}" for i in range(value.shape[0]) for c in "da"]
-    return [f"{name}[{i}]" for i in range(value.size)]
 
 
 def _pose_rows(label: str, pose, sigma: Mapping[str, float], prefix: str) -> list[list[Any]]:
@@ -127,7 +120,7 @@ def calibration_tables(c) -> list[Table]:
         for name in effects:
             value = np.asarray(c.effects[name], float)
             unit, f = _EFFECT_UNITS.get(name, ("SI", 1.0))
-            for comp, v in zip(_component_names(name, value), value.ravel()):
+            for comp, v in zip(effect_component_names(name, value.shape), value.ravel()):
                 s = sigma.get(comp, np.nan)
                 if comp in fixed:
                     rows.append([comp, "fixed (not identifiable)", "–", "–", unit])

@@ -61,13 +61,25 @@ def test_calibration_reports_and_fixes_the_ur10_degeneracies(workflow):
     for f in workflow.calibration.fitted.values():
         dropped = {d["parameter"]: d["confounded_with"] for d in f.identifiability["dropped"]}
         # joint-1 zero ≡ tracker yaw; d1 ≡ tracker z; joint-6 zero ≡ probe roll;
-        # d6, a6 ≡ probe offset; d2 + d3 + d4 (parallel axes 2–4) only as a sum
+        # d6, a6 ≡ probe offset; d2 + d3 + d4 (parallel axes 2–4) only as a sum;
+        # Hayati's tilt where consecutive axes are not parallel, and the last link's
+        # axis direction (≡ probe orientation)
         assert "camera_from_base.rz" in dropped["joint_offset[0]"]
         assert "camera_from_base.tz" in dropped["link_length[0].d"]
         assert "flange_from_probe.rz" in dropped["joint_offset[5]"]
-        for p in ("link_length[5].d", "link_length[5].a", "link_length[1].d", "link_length[2].d"):
+        for p in (
+            "link_length[5].d",
+            "link_length[5].a",
+            "link_length[1].d",
+            "link_length[2].d",
+            "link_twist[0].beta",
+            "link_twist[3].beta",
+            "link_twist[4].beta",
+            "link_twist[5].beta",
+            "link_twist[5].alpha",
+        ):
             assert p in dropped
-        assert len(dropped) == 7
+        assert len(dropped) == 12
         assert f.converged
         params = f.parameters()
         assert "joint_offset[0]" not in params and "joint_offset[1]" in params
@@ -76,6 +88,8 @@ def test_calibration_reports_and_fixes_the_ur10_degeneracies(workflow):
         # kinematic corrections of a UR10: sub-millimetre, sub-milliradian
         lengths = [v for k, (v, _) in params.items() if k.startswith("link_length")]
         assert max(abs(v) for v in lengths) < 3e-3
+        twists = [v for k, (v, _) in params.items() if k.startswith("link_twist")]
+        assert len(twists) == 7 and max(abs(v) for v in twists) < 3e-3
 
 
 def test_weights_come_from_the_tracker_std_where_present(series):
@@ -228,9 +242,10 @@ def test_bundle_calibration_agrees_with_the_pose_level_fit():
 
 # The calibration (joint_offset + link_length) of the pose-level fit's own
 # Levenberg–Marquardt loop before the package's one engine replaced it:
-# `rd.evaluate(rd.CALIBRATION, series)` on the `series` fixture at commit 0228a06
-# (θ: `pf.parameter_names()` order, tangent corrections around `series[k].start`;
-# poses ``wxyz_xyz``; cross-series position RMS [m]).
+# `rd.evaluate(("joint_offset", "link_length"), series)` on the `series` fixture at
+# commit 0228a06 (θ: `pf.parameter_names()` order of that commit, without
+# `link_twist`; tangent corrections around `series[k].start`; poses ``wxyz_xyz``;
+# cross-series position RMS [m]).
 _REF = {
     "A": {
         "theta": [
@@ -384,11 +399,14 @@ def test_same_optimum_as_the_previous_solver(series):
     parameters fixed, cross-series errors to 1 µm."""
     from robtraj.analysis import real_data as rd
 
-    cal = rd.evaluate(rd.CALIBRATION, series)
+    cal = rd.evaluate(("joint_offset", "link_length"), series)
+    twist = pf._SL["link_twist"]
     for k, f in cal.fitted.items():
         ref = _REF[k]
         assert sorted(d["parameter"] for d in f.identifiability["dropped"]) == ref["dropped"]
-        np.testing.assert_allclose(f.theta, ref["theta"], rtol=0, atol=1e-6)
+        assert not np.any(f.theta[twist])
+        theta = np.delete(f.theta, np.arange(twist.start, twist.stop))
+        np.testing.assert_allclose(theta, ref["theta"], rtol=0, atol=1e-6)
         for got, want in (
             (f.camera_from_base, ref["camera_from_base"]),
             (f.flange_from_probe, ref["flange_from_probe"]),

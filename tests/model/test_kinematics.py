@@ -6,7 +6,10 @@ import numpy as np
 import pytest
 
 from robtraj.model import (
+    Effects,
     abb_irb2400_16,
+    dh_corrections,
+    flange_jacobian,
     forward_kinematics,
     gravity_torque,
     inverse_kinematics,
@@ -14,8 +17,8 @@ from robtraj.model import (
 )
 
 
-def numpy_fk(dh, q, flange_rz):
-    """Independent reference: T = Π Rz(θ)·Tz(d)·Tx(a)·Rx(α), then Rz(flange_rz)."""
+def numpy_fk(dh, q, flange_rz, tilt=None):
+    """Independent reference: T = Π Rz(θ)·Tz(d)·Tx(a)·Rx(α)·Ry(β), then Rz(flange_rz)."""
 
     def rz(t):
         c, s = np.cos(t), np.sin(t)
@@ -25,14 +28,19 @@ def numpy_fk(dh, q, flange_rz):
         c, s = np.cos(t), np.sin(t)
         return np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1.0]])
 
+    def ry(t):
+        c, s = np.cos(t), np.sin(t)
+        return np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1.0]])
+
     def tr(x, y, z):
         m = np.eye(4)
         m[:3, 3] = x, y, z
         return m
 
     t = np.eye(4)
-    for (d, a, alpha, off), qi in zip(dh, q):
-        t = t @ rz(qi + off) @ tr(0, 0, d) @ tr(a, 0, 0) @ rx(alpha)
+    tilt = np.zeros(len(q)) if tilt is None else tilt
+    for (d, a, alpha, off), qi, beta in zip(dh, q, tilt):
+        t = t @ rz(qi + off) @ tr(0, 0, d) @ tr(a, 0, 0) @ rx(alpha) @ ry(beta)
     return t @ rz(flange_rz)
 
 
@@ -43,6 +51,23 @@ def test_fk_matches_numpy_dh_product(make, flange_rz):
     fk = jax.jit(lambda q: forward_kinematics(robot, q).as_matrix())
     for q in rng.uniform(-np.pi, np.pi, size=(50, 6)):
         want = numpy_fk(np.asarray(robot.dh), q, flange_rz)
+        np.testing.assert_allclose(np.asarray(fk(jnp.asarray(q))), want, rtol=0, atol=1e-12)
+
+
+def test_geometric_effects_match_numpy_dh_product():
+    """link_length, link_twist (Δα and Hayati's Δβ) against the numpy product of the
+    corrected DH matrices, each followed by Ry(Δβ)."""
+    robot = ur10()
+    rng = np.random.default_rng(1)
+    eff = Effects.zeros(6).with_value("link_length", rng.normal(0, 1e-3, (6, 2)))
+    eff = eff.with_value("link_twist", rng.normal(0, 1e-2, (6, 2)))
+    dh_delta, tilt = dh_corrections(robot, eff)
+    dh = np.asarray(robot.dh).copy()
+    dh[:, :2] += np.asarray(eff.link_length)
+    dh[:, 2] += np.asarray(eff.link_twist)[:, 0]
+    fk = jax.jit(lambda q: forward_kinematics(robot, q, dh_delta, tilt).as_matrix())
+    for q in rng.uniform(-np.pi, np.pi, size=(20, 6)):
+        want = numpy_fk(dh, q, 0.0, np.asarray(eff.link_twist)[:, 1])
         np.testing.assert_allclose(np.asarray(fk(jnp.asarray(q))), want, rtol=0, atol=1e-12)
 
 
@@ -100,3 +125,32 @@ def test_inverse_kinematics_round_trip():
     target = forward_kinematics(robot, q_true)
     q = inverse_kinematics(robot, target, q_true + 0.05)
     np.testing.assert_allclose(np.asarray(q), np.asarray(q_true), atol=1e-10)
+
+
+def test_flange_jacobian_matches_autodiff():
+    """The closed-form twists of `flange_jacobian` against forward-mode autodiff of the
+    forward kinematics (left-perturbation twist of base←flange), at corrected DH."""
+    robot = ur10()
+    rng = np.random.default_rng(2)
+    eff = Effects.zeros(6).with_value("link_length", rng.normal(0, 1e-3, (6, 2)))
+    eff = eff.with_value("link_twist", rng.normal(0, 1e-2, (6, 2)))
+    dh_delta, tilt = dh_corrections(robot, eff)
+
+    def twist_of(p, q):
+        # p = [θ, d, a, α, β] corrections (joints, 5) around the current model
+        dd = dh_delta.at[:, 0].add(p[:, 1]).at[:, 1].add(p[:, 2]).at[:, 2].add(p[:, 3])
+        t = forward_kinematics(robot, q + p[:, 0], dd, tilt + p[:, 4])
+        t0 = forward_kinematics(robot, q, dh_delta, tilt)
+        return (t @ t0.inverse()).log()
+
+    for q in rng.uniform(-np.pi, np.pi, size=(5, 6)):
+        q = jnp.asarray(q)
+        want = jax.jacfwd(twist_of)(jnp.zeros((6, 5)), q)  # (6, joints, 5)
+        pose, got = flange_jacobian(robot, q, dh_delta, tilt)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            pose.as_matrix(),
+            forward_kinematics(robot, q, dh_delta, tilt).as_matrix(),
+            rtol=0,
+            atol=1e-15,
+        )
