@@ -83,16 +83,20 @@ def _sigma_text(w: dict) -> str:
     )
 
 
-def warn_undetermined(calib, name: str, consequence: str) -> None:
+def warn_undetermined(calib, name: str, consequence: str, refitted: tuple[str, ...] = ()) -> None:
     """Warning lines on stderr when `calib` leaves a rigid transform undetermined, or
-    determines one only poorly (σ above its tolerance)."""
+    determines one only poorly (σ above its tolerance); transforms in `refitted`
+    (``camera_from_base``, ``flange_from_tool``) are estimated anew and left out."""
     import sys
+
+    def kept(parameter: str) -> bool:
+        return parameter.split(".", 1)[0] not in refitted
 
     fix = (
         "calibrate on a run with reorientations about two axes (`robtraj calibrate` lists "
         "the poses to add)"
     )
-    bad = undetermined_rigid(calib)
+    bad = [b for b in undetermined_rigid(calib) if kept(b)]
     if bad:
         print(
             f"robtraj: warning: {name} does not determine {', '.join(bad)} (the recording it "
@@ -100,7 +104,7 @@ def warn_undetermined(calib, name: str, consequence: str) -> None:
             + fix,
             file=sys.stderr,
         )
-    weak = weak_rigid(calib)
+    weak = [w for w in weak_rigid(calib) if kept(w["parameter"])]
     if weak:
         print(
             f"robtraj: warning: {name} determines {', '.join(map(_sigma_text, weak))} only "

@@ -66,8 +66,9 @@ def run(args: argparse.Namespace) -> int:
     _output.check([args.json, args.plot], force=args.force)
     calib = load_calibration(args.calibration)
     rec = read_recording(args.recording)
-    warn_undetermined(calib, args.calibration, "the prediction depends")
-    pred = predict(rec, calib, [_ALIASES[s] for s in names])
+    refit = tuple(_ALIASES[s] for s in names)
+    warn_undetermined(calib, args.calibration, "the prediction depends", refit)
+    pred = predict(rec, calib, list(refit))
     _output.write_json(args.json, pred.to_json())
     if args.plot:
         from ..report import workspace_error_figure

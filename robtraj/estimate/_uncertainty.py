@@ -95,12 +95,10 @@ def identifiability(
             continue
         coef = inv @ (h[idx, i] / d[idx] / d[i])
         order = np.argsort(-np.abs(coef))
-        report.append(
-            {
-                "parameter": name,
-                "confounded_with": [names[idx[m]] for m in order if abs(coef[m]) > 0.05],
-            }
-        )
+        # in a null direction yet explained by no other column: its own column is
+        # numerical noise (a gravity torque of rounding size, say)
+        others = [names[idx[m]] for m in order if abs(coef[m]) > 0.05]
+        report.append({"parameter": name, "confounded_with": others or ["(no effect on the data)"]})
     return free, {
         "condition_number": float(lam[-1] / good[0]) if good.size else float("inf"),
         "rcond": RCOND,

@@ -99,3 +99,22 @@ def test_bad_input_is_one_line(setup, tmp_path, capsys, case, needle):
         write_recording(setup["b"].replace(robot=None), rec)
     code, _, err = run_cli(capsys, "evaluate", rec, "--calibration", calib, *extra)
     assert_one_line_error(code, err, needle)
+
+
+def test_warnings_leave_out_the_transforms_it_refits(setup, tmp_path, capsys):
+    """A calibration that determines camera←base and flange←tool only poorly: `evaluate`
+    warns about the transforms it takes from the calibration, not about those it refits."""
+    doc = json.loads((setup["dir"] / "right.json").read_text())
+    doc["identifiability"]["weak"] = [
+        {"parameter": "camera_from_base.tx", "sigma": 5e-5, "tolerance": 2e-5},
+        {"parameter": "flange_from_tool.ry", "sigma": 3e-4, "tolerance": 1e-4},
+    ]
+    calib = tmp_path / "weak.json"
+    calib.write_text(json.dumps(doc))
+    rec = setup["dir"] / "b.h5"
+    code, _, err = run_cli(capsys, "evaluate", rec, "--calibration", calib)
+    assert code == 0 and "flange_from_tool.ry" in err and "camera_from_base" not in err
+    code, _, err = run_cli(
+        capsys, "evaluate", rec, "--calibration", calib, "--refit", "camera,tool"
+    )
+    assert code == 0 and "warning" not in err
