@@ -535,6 +535,7 @@ def fit_poses(
     def robust():
         cov_r = _region_jackknife(theta, data, free, series)
         return np.where(free, np.sqrt(np.clip(np.diag(cov_r), 0.0, None)), np.nan)
+
     pred = np.asarray(
         _predict_jit(jnp.asarray(theta), *(data.z0, data.x0, data.joints, data.drift, data.torque))
     )

@@ -9,8 +9,9 @@ forward model of `robtraj.model` (`residuals`); probe poses add 6-DOF pose resid
 `bundle_normal` is the problem as `robtraj.estimate._solve` takes it.
 
 For whole recordings the normal equations ``JᵀJ``, ``Jᵀr`` are accumulated chunk by chunk
-(`lax.scan` over chunks of frames, `jax.jacfwd` inside a chunk), never materialising the
-Jacobian. The constellation enters each residual only through its own LED, so its
+(`lax.scan` over chunks of frames), never materialising the Jacobian; the effects'
+columns of the tool pose come in closed form from the kinematics' own twists
+(`robtraj.model.flange_jacobian`), not by forward mode through the forward kinematics. The constellation enters each residual only through its own LED, so its
 columns are obtained with three forward-mode tangents (x, y, z of every LED at once)
 and accumulated as per-LED blocks.
 """
@@ -30,8 +31,11 @@ from ..model import (
     Effects,
     RobotModel,
     camera_from_base_at,
+    dh_corrections,
     emission_angle,
+    flange_jacobian,
     flange_poses,
+    gravity_torque,
     interpolate_joints,
     led_positions,
     motion_direction,
@@ -143,9 +147,6 @@ def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
         fl0 = jaxlie.SE3(frames.base_from_flange)
     tool0, _ = tool_poses(g, problem, frames, fl0)
 
-    def xi(tool):
-        return jax.vmap(lambda a, b: (a.inverse() @ b).log())(tool0, tool)
-
     # pose columns: with T = S·cfb·exp(gc + δc)·F·fft·exp(gf + δf) (S the thermal shift)
     # and exp(g + δ) = exp(g)·exp(Jr(g)·δ), ξ = Ad((F·fft(gf))⁻¹)·Jr(gc)·δc + Jr(gf)·δf
     _, fft, _ = _split(g, problem)
@@ -154,8 +155,58 @@ def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
     j_pose = jnp.concatenate([ad @ jr_c, jnp.broadcast_to(jr_f, ad.shape)], -1)
     if g.shape[0] == 12:
         return tool0, j_pose
-    j_eff = jax.jacfwd(lambda ge: xi(tool_poses(g.at[12:].set(ge), problem, frames)[0]))(g[12:])
-    return tool0, jnp.concatenate([j_pose, j_eff], -1)
+    return tool0, jnp.concatenate([j_pose, _effect_columns(g, problem, frames, tool0)], -1)
+
+
+def _effect_columns(g, problem: BundleProblem, frames: Frames, tool0: jaxlie.SE3) -> Array:
+    """``∂ξ/∂(effects)`` `(C, 6, q − 12)` in closed form: each kinematic effect moves
+    some links' DH parameters, whose flange twists `robtraj.model.flange_jacobian` gives
+    (carried to the tool frame by the adjoint of (flange·tool)⁻¹); the thermal drift
+    translates camera←base; LED-level effects do not move the tool."""
+    _, fft, eff = _split(g, problem)
+    n = frames.time.shape[0]
+    ad_tool = jax.vmap(lambda t: t.inverse().adjoint())(tool0)  # camera twist → tool
+    if problem.kinematic:
+        robot = problem.robot
+        t = frames.time + eff.time_offset
+
+        def joints_at(tt):
+            return interpolate_joints(problem.log_time, problem.joints, tt)
+
+        q, qdot = jax.jvp(joints_at, (t,), (jnp.ones_like(t),))
+        torque, dtorque = jax.vmap(
+            lambda a, v: jax.jvp(lambda x: gravity_torque(robot, x), (a,), (v,))
+        )(q, qdot)
+        q_eff = (
+            q + eff.joint_offset + eff.backlash * frames.direction + eff.joint_compliance * torque
+        )
+        dh_delta, tilt = dh_corrections(robot, eff)
+        flange, twist = jax.vmap(lambda a: flange_jacobian(robot, a, dh_delta, tilt))(q_eff)
+        ad = jax.vmap(lambda f: (f @ fft).inverse().adjoint())(flange)
+        dh = jnp.einsum("cab,cbjk->cajk", ad, twist)  # (C, 6, joints, [θ, d, a, α, β])
+        turn = dh[..., 0]
+    cols = []
+    for name, size in zip(problem.free, effect_sizes(problem.effects, problem.free)):
+        if name == "time_offset":
+            rate = qdot + eff.joint_compliance * dtorque
+            col = jnp.einsum("caj,cj->ca", turn, rate)[..., None]
+        elif name == "joint_offset":
+            col = turn
+        elif name == "backlash":
+            col = turn * frames.direction[:, None, :]
+        elif name == "joint_compliance":
+            col = turn * torque[:, None, :]
+        elif name == "link_length":
+            col = dh[..., 1:3].reshape(n, 6, -1)
+        elif name == "link_twist":
+            col = dh[..., 3:5].reshape(n, 6, -1)
+        elif name == "thermal_drift":
+            shift = frames.drift[:, None, None] * jnp.eye(3, dtype=g.dtype)  # (C, 3, 3)
+            col = ad_tool[..., :3] @ shift
+        else:  # LED-level effects act on the LED positions, not on the tool pose
+            col = jnp.zeros((n, 6, size), g.dtype)
+        cols.append(col)
+    return jnp.concatenate(cols, -1)
 
 
 def _led_effect_columns(problem: BundleProblem) -> list[int]:
