@@ -27,6 +27,7 @@ from ..model import (
     effect_component_names,
     flange_jacobian,
     forward_kinematics,
+    redundant_link_parameters,
     ur10,
 )
 from ._pose_series import PoseSeries
@@ -50,13 +51,6 @@ REGIONS = 10
 #: flange axis, d6/a6 ≡ probe offset, d2 + d3 + d4 along parallel axes 2–4 only as a
 #: sum, no gravity torque on joints 1 and 6), so that both series fix the same ones
 FIX_PREFERENCE = (
-    # Hayati's tilt only where consecutive axes are parallel (links 2 and 3); the last
-    # link's axis direction is the probe's orientation
-    "link_twist[0].beta",
-    "link_twist[3].beta",
-    "link_twist[4].beta",
-    "link_twist[5].beta",
-    "link_twist[5].alpha",
     "joint_compliance[0]",
     "joint_compliance[5]",
     "joint_offset[0]",
@@ -101,6 +95,8 @@ def _slices(n_joints: int = 6) -> dict[str, slice]:
 
 N_PARAMS = len(parameter_names())
 _SL = _slices()
+#: θ entries never estimated (Hayati's tilt of non-parallel axes, the last link's axis)
+_REDUNDANT = [parameter_names().index(n) for n in redundant_link_parameters(ur10())]
 
 
 def _effects_of(theta) -> Effects:
@@ -350,6 +346,7 @@ def _free_mask(estimate: Sequence[str], rigid: Sequence[str] = ("camera", "probe
             free[sl] = True
         else:
             free[sl.start + np.asarray(idx)] = True
+    free[_REDUNDANT] = False
     return free
 
 

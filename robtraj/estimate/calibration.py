@@ -56,7 +56,13 @@ import jaxlie
 import numpy as np
 
 from .._errors import UserError
-from ..model import EFFECT_NAMES, LIBRARY, Effects, effect_component_names
+from ..model import (
+    EFFECT_NAMES,
+    LIBRARY,
+    Effects,
+    effect_component_names,
+    redundant_link_parameters,
+)
 from ..recording import Pose, Recording
 from . import _calib_problem as cp
 from ._calib_data import CalibrationData, prepare
@@ -660,7 +666,10 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()
 
     names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
     held = set(free) - set(estimated)
-    in_model = np.array([n.partition("[")[0] not in held for n in names_theta])
+    redundant = set(redundant_link_parameters(data.robot))
+    in_model = np.array(
+        [n.partition("[")[0] not in held and n not in redundant for n in names_theta]
+    )
     has_column = np.concatenate([np.ones(q, bool), np.any(basis != 0, axis=0)])
     n_res = 3 * int(np.sum(w_user > 0)) + (0 if probe is None else 6 * probe.probed.shape[0])
     normal0 = _normal_at_zero(bundle, len(names_theta)) if normal else None

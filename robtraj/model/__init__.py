@@ -23,6 +23,7 @@ from ._kinematics import (
     gravity_torque,
     inverse_kinematics,
     joint_frames,
+    redundant_link_parameters,
     robot_from_log,
     ur10,
 )
@@ -66,6 +67,7 @@ __all__ = [
     "noise_sigma",
     "parse_effect",
     "predict_tool_poses",
+    "redundant_link_parameters",
     "robot_from_log",
     "ur10",
 ]

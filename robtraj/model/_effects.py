@@ -32,7 +32,8 @@ class Effects(eqx.Module):
       Δα of the DH twist (about xᵢ) and Hayati's Δβ, a turn of frame i about its own
       yᵢ (the link transform becomes ``… · Rx(α + Δα) · Ry(Δβ)``). Δβ is what tilts a
       joint axis parallel to the previous one; where consecutive axes are not parallel
-      the DH parameters already cover it and the engine fixes it as unidentifiable.
+      the DH parameters already cover it, and it is not estimated there, nor the last
+      link's axis direction (`redundant_link_parameters`).
     - `joint_compliance` `(joints,)` [rad/(N·m)]: deflection = compliance · gravity torque.
     - `backlash` `(joints,)` [rad]: offset of sign equal to the joint's direction of
       motion (the last direction is held while the joint stands still).

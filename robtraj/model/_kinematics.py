@@ -152,6 +152,17 @@ def forward_kinematics(
     return jaxlie.SE3.from_matrix(base_from_last) @ jaxlie.SE3(robot.last_from_flange)
 
 
+def redundant_link_parameters(robot: RobotModel) -> tuple[str, ...]:
+    """`link_twist` entries that the other geometric parameters already cover, so that
+    they are never estimated: Hayati's Δβ of a link whose axes are not parallel
+    (|sin α| > 0.5: standard DH describes a tilt about y there through the next joint's
+    offset and d) and the last link's Δα, Δβ (the tool frame's orientation)."""
+    alpha = np.asarray(robot.dh)[:, 2]
+    last = robot.n_joints - 1
+    out = [f"link_twist[{j}].beta" for j in range(last) if abs(np.sin(alpha[j])) > 0.5]
+    return (*out, f"link_twist[{last}].alpha", f"link_twist[{last}].beta")
+
+
 def flange_jacobian(
     robot: RobotModel,
     q: Float[Array, " joints"],

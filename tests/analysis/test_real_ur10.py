@@ -61,25 +61,20 @@ def test_calibration_reports_and_fixes_the_ur10_degeneracies(workflow):
     for f in workflow.calibration.fitted.values():
         dropped = {d["parameter"]: d["confounded_with"] for d in f.identifiability["dropped"]}
         # joint-1 zero ≡ tracker yaw; d1 ≡ tracker z; joint-6 zero ≡ probe roll;
-        # d6, a6 ≡ probe offset; d2 + d3 + d4 (parallel axes 2–4) only as a sum;
-        # Hayati's tilt where consecutive axes are not parallel, and the last link's
-        # axis direction (≡ probe orientation)
+        # d6, a6 ≡ probe offset; d2 + d3 + d4 (parallel axes 2–4) only as a sum
         assert "camera_from_base.rz" in dropped["joint_offset[0]"]
         assert "camera_from_base.tz" in dropped["link_length[0].d"]
         assert "flange_from_probe.rz" in dropped["joint_offset[5]"]
-        for p in (
-            "link_length[5].d",
-            "link_length[5].a",
-            "link_length[1].d",
-            "link_length[2].d",
-            "link_twist[0].beta",
-            "link_twist[3].beta",
-            "link_twist[4].beta",
-            "link_twist[5].beta",
-            "link_twist[5].alpha",
-        ):
+        for p in ("link_length[5].d", "link_length[5].a", "link_length[1].d", "link_length[2].d"):
             assert p in dropped
-        assert len(dropped) == 12
+        assert len(dropped) == 7
+        # Hayati's tilt is estimated only where consecutive axes are parallel (links 2
+        # and 3), never for the last link's axis (≡ probe orientation)
+        free = {n for n, f in zip(pf.parameter_names(), f.free) if f and "twist" in n}
+        assert free == {f"link_twist[{j}].alpha" for j in range(5)} | {
+            "link_twist[1].beta",
+            "link_twist[2].beta",
+        }
         assert f.converged
         params = f.parameters()
         assert "joint_offset[0]" not in params and "joint_offset[1]" in params
@@ -105,13 +100,16 @@ def test_weights_come_from_the_tracker_std_where_present(series):
 
 
 def test_named_effects_reduce_the_cross_series_prediction_error(workflow):
+    """Each named effect lowers the other series' position error in both directions, and
+    the naming rule's cost (mean of the position and orientation RMS decreases) by ≥ 2 %,
+    recomputed here from the models themselves."""
     assert workflow.named, "nothing named"
-    assert "link_length" in workflow.named
+    assert workflow.named[:2] == ["link_twist", "link_length"], workflow.named
     for before, after in zip(workflow.models[:-1], workflow.models[1:]):
         for key in ("A->B", "B->A"):
-            p0, _ = _cross(before, key)
-            p1, _ = _cross(after, key)
-            assert p1 < 0.95 * p0, (after.effects, key, p0, p1)
+            (p0, a0), (p1, a1) = _cross(before, key), _cross(after, key)
+            assert p1 < p0, (after.effects, key, p0, p1)
+            assert 0.5 * ((p0 - p1) / p0 + (a0 - a1) / a0) >= 0.02, (after.effects, key)
     for step in workflow.steps:
         assert step["predicts_better"] and step["fits_better"]
         assert all(g >= 0.02 for g in step["cross_gain"].values())

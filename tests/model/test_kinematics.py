@@ -13,6 +13,7 @@ from robtraj.model import (
     forward_kinematics,
     gravity_torque,
     inverse_kinematics,
+    redundant_link_parameters,
     ur10,
 )
 
@@ -154,3 +155,21 @@ def test_flange_jacobian_matches_autodiff():
             rtol=0,
             atol=1e-15,
         )
+
+
+def test_redundant_link_parameters_follow_the_axes():
+    """Hayati's tilt only where consecutive axes are parallel; never the last link's axis."""
+    last = ("link_twist[5].alpha", "link_twist[5].beta")
+    assert redundant_link_parameters(ur10()) == (
+        "link_twist[0].beta",
+        "link_twist[3].beta",
+        "link_twist[4].beta",
+        *last,
+    )
+    assert redundant_link_parameters(abb_irb2400_16()) == (
+        "link_twist[0].beta",
+        "link_twist[2].beta",
+        "link_twist[3].beta",
+        "link_twist[4].beta",
+        *last,
+    )
