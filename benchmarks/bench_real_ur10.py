@@ -38,13 +38,19 @@ def _base_rotation(fit: rd.PoseFit) -> np.ndarray:
     return Rotation.from_quat(fit.camera_from_base[:4], scalar_first=True).as_matrix()
 
 
-def _kabsch_errors(pred: np.ndarray, meas: np.ndarray) -> np.ndarray:
-    """Position errors [m] after the best rigid motion of `pred` onto `meas`."""
-    a, b = pred - pred.mean(0), meas - meas.mean(0)
-    u, _, vt = np.linalg.svd(a.T @ b)
-    d = np.sign(np.linalg.det(u @ vt))
-    rot = (u @ np.diag([1, 1, d]) @ vt).T
-    return np.linalg.norm(a @ rot.T - b, axis=1)
+def _realigned_errors(pred: np.ndarray, meas: np.ndarray) -> np.ndarray:
+    """Position errors [m] after the best rigid motion of `pred` onto `meas`
+    (`robtraj.jax_ops.weighted_procrustes`, all points weighted alike)."""
+    import jax.numpy as jnp
+    from scipy.spatial.transform import Rotation
+
+    from robtraj.jax_ops import weighted_procrustes
+
+    fit = weighted_procrustes(
+        jnp.asarray(pred)[None], jnp.asarray(meas)[None], jnp.ones((1, len(pred)))
+    )
+    rot = Rotation.from_quat(np.asarray(fit.quaternion_wxyz[0]), scalar_first=True)
+    return np.linalg.norm(rot.apply(pred) + np.asarray(fit.position[0]) - meas, axis=1)
 
 
 class _Nystrom:
@@ -97,8 +103,8 @@ def black_box_anchor(model: rd.CrossSeries, series: dict) -> dict:
         t = series[dst]
         pred = _positions(cross, t)
         corrected = pred + g(t.joints[:, :5]) @ _base_rotation(cross).T
-        model_only = _kabsch_errors(pred, t.measured[:, 4:])
-        with_bb = _kabsch_errors(corrected, t.measured[:, 4:])
+        model_only = _realigned_errors(pred, t.measured[:, 4:])
+        with_bb = _realigned_errors(corrected, t.measured[:, 4:])
         out[key] = {
             "length_scale_rad": best[1],
             "ridge": best[2],

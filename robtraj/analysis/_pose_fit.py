@@ -178,16 +178,9 @@ def _jacobian(theta, z0, x0, joints, drift, torque, measured):
     def residual(theta_global, xi):
         t = theta.at[_GLOBAL].set(theta_global)
         e = _effects_of(t)
-        z = jaxlie.SE3(z0) @ jaxlie.SE3.exp(t[:6])
-        x = jaxlie.SE3(x0) @ jaxlie.SE3.exp(t[6:12])
-        f = jax.vmap(lambda a, b: jaxlie.SE3.exp(a) @ jaxlie.SE3(b))(xi, flange.wxyz_xyz)
-        pose = camera_from_base_at(z, e, drift) @ f @ x
-        pos = (1.0 + e.tracker_scale) * pose.translation()
-        dp = pos - measured[:, 4:]
-        dr = jax.vmap(lambda a, b: (jaxlie.SO3(a).inverse() @ jaxlie.SO3(b)).log())(
-            measured[:, :4], pose.rotation().wxyz
-        )
-        return jnp.concatenate([dp, dr], -1)
+        f = jax.vmap(lambda a, b: (jaxlie.SE3.exp(a) @ jaxlie.SE3(b)).wxyz_xyz)(xi, flange.wxyz_xyz)
+        shift = drift[:, None] * e.thermal_drift[None, :]
+        return _rigid_residual(t[:12], z0, x0, f, shift, e.tracker_scale, measured)
 
     xi0 = jnp.zeros((n, 6), theta.dtype)
     tg = theta[_GLOBAL]

@@ -9,9 +9,10 @@ forward model of `robtraj.model` (`residuals`); probe poses add 6-DOF pose resid
 `bundle_normal` is the problem as `robtraj.estimate._solve` takes it.
 
 For whole recordings the normal equations ``JᵀJ``, ``Jᵀr`` are accumulated chunk by chunk
-(`lax.scan` over chunks of frames), never materialising the Jacobian; the effects'
+(`lax.scan` over chunks of frames), never materialising the Jacobian. The effects'
 columns of the tool pose come in closed form from the kinematics' own twists
-(`robtraj.model.flange_jacobian`), not by forward mode through the forward kinematics. The constellation enters each residual only through its own LED, so its
+(`robtraj.model.flange_jacobian`), not by forward mode through the forward kinematics.
+The constellation enters each residual only through its own LED, so its
 columns are obtained with three forward-mode tangents (x, y, z of every LED at once)
 and accumulated as per-LED blocks.
 """
@@ -32,10 +33,10 @@ from ..model import (
     RobotModel,
     camera_from_base_at,
     dh_corrections,
+    effective_joints,
     emission_angle,
     flange_jacobian,
     flange_poses,
-    gravity_torque,
     interpolate_joints,
     led_positions,
     motion_direction,
@@ -136,15 +137,11 @@ def _right_jacobian(x: Array) -> Array:
 def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
     """camera←tool per frame and ``∂ξ/∂g`` `(C, 6, q)` of its tangent ``T(g) = T(0) exp(ξ)``.
 
-    The pose columns are taken with the flange poses held fixed, so that only the
-    effect columns push tangents through the forward kinematics.
+    The pose columns are taken with the flange poses held fixed; the effect columns
+    come in closed form (`_effect_columns`), from one pass of the kinematics.
     """
-    if problem.kinematic:
-        _, _, eff = _split(g, problem)
-        q = interpolate_joints(problem.log_time, problem.joints, frames.time + eff.time_offset)
-        fl0 = flange_poses(problem.robot, eff, q, frames.direction)
-    else:
-        fl0 = jaxlie.SE3(frames.base_from_flange)
+    kinematics = _kinematic_twists(g, problem, frames) if problem.kinematic else None
+    fl0 = kinematics[0] if kinematics else jaxlie.SE3(frames.base_from_flange)
     tool0, _ = tool_poses(g, problem, frames, fl0)
 
     # pose columns: with T = S·cfb·exp(gc + δc)·F·fft·exp(gf + δf) (S the thermal shift)
@@ -155,40 +152,46 @@ def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
     j_pose = jnp.concatenate([ad @ jr_c, jnp.broadcast_to(jr_f, ad.shape)], -1)
     if g.shape[0] == 12:
         return tool0, j_pose
-    return tool0, jnp.concatenate([j_pose, _effect_columns(g, problem, frames, tool0)], -1)
+    j_eff = _effect_columns(g, problem, frames, tool0, ad, kinematics)
+    return tool0, jnp.concatenate([j_pose, j_eff], -1)
 
 
-def _effect_columns(g, problem: BundleProblem, frames: Frames, tool0: jaxlie.SE3) -> Array:
+def _kinematic_twists(g, problem: BundleProblem, frames: Frames):
+    """base←flange per frame (the model's `flange_poses`), its twists per link parameter
+    (`robtraj.model.flange_jacobian`, `(C, 6, joints, 5)`), and the derivatives of the
+    effective joint angles in the clock offset `(C, joints)` [rad/s] and in each joint's
+    compliance (the gravity torque, `(C, joints)` [N·m])."""
+    _, _, eff = _split(g, problem)
+    robot = problem.robot
+
+    def joints(t, compliance):
+        e = eqx.tree_at(lambda x: x.joint_compliance, eff, compliance)
+        q = interpolate_joints(problem.log_time, problem.joints, t)
+        return jax.vmap(lambda a, d: effective_joints(robot, e, a, d))(q, frames.direction)
+
+    t = frames.time + eff.time_offset
+    c = eff.joint_compliance
+    q_eff, tangent = jax.linearize(joints, t, c)
+    rate = tangent(jnp.ones_like(t), jnp.zeros_like(c))
+    torque = tangent(jnp.zeros_like(t), jnp.ones_like(c))
+    dh_delta, tilt = dh_corrections(robot, eff)
+    flange, twist = jax.vmap(lambda a: flange_jacobian(robot, a, dh_delta, tilt))(q_eff)
+    return flange, twist, rate, torque
+
+
+def _effect_columns(g, problem: BundleProblem, frames: Frames, tool0, ad, kinematics) -> Array:
     """``∂ξ/∂(effects)`` `(C, 6, q − 12)` in closed form: each kinematic effect moves
-    some links' DH parameters, whose flange twists `robtraj.model.flange_jacobian` gives
-    (carried to the tool frame by the adjoint of (flange·tool)⁻¹); the thermal drift
-    translates camera←base; LED-level effects do not move the tool."""
-    _, fft, eff = _split(g, problem)
+    some links' DH parameters, whose flange twists `kinematics` holds (carried to the
+    tool frame by `ad`, the adjoint of (flange·tool)⁻¹); the thermal drift translates
+    camera←base; LED-level effects do not move the tool."""
     n = frames.time.shape[0]
-    ad_tool = jax.vmap(lambda t: t.inverse().adjoint())(tool0)  # camera twist → tool
-    if problem.kinematic:
-        robot = problem.robot
-        t = frames.time + eff.time_offset
-
-        def joints_at(tt):
-            return interpolate_joints(problem.log_time, problem.joints, tt)
-
-        q, qdot = jax.jvp(joints_at, (t,), (jnp.ones_like(t),))
-        torque, dtorque = jax.vmap(
-            lambda a, v: jax.jvp(lambda x: gravity_torque(robot, x), (a,), (v,))
-        )(q, qdot)
-        q_eff = (
-            q + eff.joint_offset + eff.backlash * frames.direction + eff.joint_compliance * torque
-        )
-        dh_delta, tilt = dh_corrections(robot, eff)
-        flange, twist = jax.vmap(lambda a: flange_jacobian(robot, a, dh_delta, tilt))(q_eff)
-        ad = jax.vmap(lambda f: (f @ fft).inverse().adjoint())(flange)
+    if kinematics is not None:
+        _, twist, rate, torque = kinematics
         dh = jnp.einsum("cab,cbjk->cajk", ad, twist)  # (C, 6, joints, [θ, d, a, α, β])
         turn = dh[..., 0]
     cols = []
     for name, size in zip(problem.free, effect_sizes(problem.effects, problem.free)):
         if name == "time_offset":
-            rate = qdot + eff.joint_compliance * dtorque
             col = jnp.einsum("caj,cj->ca", turn, rate)[..., None]
         elif name == "joint_offset":
             col = turn
@@ -201,8 +204,9 @@ def _effect_columns(g, problem: BundleProblem, frames: Frames, tool0: jaxlie.SE3
         elif name == "link_twist":
             col = dh[..., 3:5].reshape(n, 6, -1)
         elif name == "thermal_drift":
-            shift = frames.drift[:, None, None] * jnp.eye(3, dtype=g.dtype)  # (C, 3, 3)
-            col = ad_tool[..., :3] @ shift
+            # a shift of camera←base by drift·δ, as a tool-frame twist
+            ad_tool = jax.vmap(lambda t: t.inverse().adjoint())(tool0)
+            col = ad_tool[..., :3] * frames.drift[:, None, None]
         else:  # LED-level effects act on the LED positions, not on the tool pose
             col = jnp.zeros((n, 6, size), g.dtype)
         cols.append(col)
