@@ -6,7 +6,10 @@ Series A (11 911) and Series B (1 495), then the extras the document quotes: the
 cross-series prediction with only camera←base refitted, the flange←probe of the two
 series compared, and the calibration of Series B with pure 1/std² weights.
 
-    python benchmarks/bench_real_ur10.py [--every-a 1] [--every-b 1] [--json PATH]
+    python benchmarks/bench_real_ur10.py [--every-a 1] [--every-b 1] [--json PATH] [--dictionary]
+
+`--dictionary` offers the dictionary's joint-angle harmonics (24 terms) as candidates
+besides the library (results: benchmarks/results/real_ur10_dictionary.json).
 """
 
 from __future__ import annotations
@@ -122,6 +125,11 @@ def main() -> None:
     ap.add_argument("--every-b", type=int, default=1)
     ap.add_argument("--json", metavar="PATH")
     ap.add_argument(
+        "--dictionary",
+        action="store_true",
+        help="offer the dictionary's joint-angle harmonics as candidates too",
+    )
+    ap.add_argument(
         "--data",
         default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "ipa-robot-accuracy"),
         help="the ipa-robot-accuracy data set folder (default: ../shared/data/...)",
@@ -133,7 +141,9 @@ def main() -> None:
         "B": rd.load_series("B", a.data).every(a.every_b),
     }
     wf = rd.run_workflow(
-        series, progress=lambda m: print(f"{time.perf_counter() - t0:7.1f} s  {m}", flush=True)
+        series,
+        candidates=rd.CANDIDATES + (rd.DICTIONARY if a.dictionary else ()),
+        progress=lambda m: print(f"{time.perf_counter() - t0:7.1f} s  {m}", flush=True),
     )
     wall = time.perf_counter() - t0
     print(f"\nposes: A {series['A'].n}, B {series['B'].n}; workflow {wall:.1f} s")

@@ -9,7 +9,7 @@ the fields the analysis needs and turns every defect into one `UserError` naming
 - ``constellation``: ``{"led_ids": [..], "positions": [[x, y, z], ..] (m, tool frame)}``,
   at least 3 distinct LEDs;
 - optional: ``time_offset`` (s), ``residual_rms_m`` and ``noise_sigma_m`` (m, >= 0 or
-  null), ``effects`` (names of `robtraj.model.EFFECT_NAMES`, finite values), ``covariance``
+  null), ``effects`` (names of `robtraj.model.known_effects`, finite values), ``covariance``
   (null, or ``{"parameters": [..], "matrix": [[..]]}`` square of that size, finite),
   ``identifiability`` (an object; its ``undetermined``, if given, a list of parameter
   names the calibration's recording did not determine: the analyses warn about them).
@@ -87,15 +87,16 @@ def _optional_number(doc: dict, key: str, *, nonnegative: bool = False) -> float
 
 
 def _effects(doc: dict) -> dict:
-    from .model import EFFECT_NAMES
+    from .model import EFFECT_NAMES, is_effect
 
     e = doc.get("effects") or {}
     if not isinstance(e, dict):
         raise UserError("'effects' must be an object {name: value}")
-    unknown = sorted(set(e) - set(EFFECT_NAMES))
+    unknown = sorted(n for n in e if not is_effect(n))
     if unknown:
         raise UserError(
-            f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECT_NAMES)})"
+            f"unknown effect(s) {', '.join(unknown)} "
+            f"(known: {', '.join(EFFECT_NAMES)} and the dictionary's terms)"
         )
     return {k: _numbers(v, None, f"effects.{k}").tolist() for k, v in e.items()}
 

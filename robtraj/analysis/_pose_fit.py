@@ -16,11 +16,13 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from jaxtyping import Array
 from scipy.cluster.vq import kmeans2
 
 from .._errors import UserError
 from ..estimate import covariance, identifiability, normal_at, robust_covariance, solve
 from ..model import (
+    HARMONICS,
     Effects,
     camera_from_base_at,
     dh_corrections,
@@ -41,7 +43,10 @@ _EFFECT_ORDER = (
     "joint_compliance",
     "thermal_drift",
     "tracker_scale",
+    "joint_harmonic",
 )
+#: the dictionary's joint-angle harmonics, in the order of the `joint_harmonic` block
+HARMONIC_TERMS = tuple(f"joint{j + 1}_harmonic{h}" for j in range(6) for h in HARMONICS)
 _TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
 #: regions of joint space the robust σ leaves out one at a time: the model error of a
 #: UR10 varies over the workspace, so a region must span a good part of it
@@ -73,6 +78,7 @@ def _effect_sizes(n_joints: int = 6) -> dict[str, int]:
         "joint_compliance": n_joints,
         "thermal_drift": 3,
         "tracker_scale": 1,
+        "joint_harmonic": 2 * len(HARMONICS) * n_joints,
     }
 
 
@@ -80,8 +86,10 @@ def parameter_names(n_joints: int = 6) -> list[str]:
     names = [f"camera_from_base.{t}" for t in _TANGENT]
     names += [f"flange_from_probe.{t}" for t in _TANGENT]
     zeros = Effects.zeros(n_joints)
-    for name in _EFFECT_ORDER:
+    for name in _EFFECT_ORDER[:-1]:
         names += effect_component_names(name, np.shape(getattr(zeros, name)))
+    for t in HARMONIC_TERMS:
+        names += effect_component_names(t, (2,))
     return names
 
 
@@ -109,7 +117,16 @@ def _effects_of(theta) -> Effects:
         joint_compliance=theta[_SL["joint_compliance"]],
         thermal_drift=theta[_SL["thermal_drift"]],
         tracker_scale=theta[_SL["tracker_scale"]][0],
+        terms={
+            t: theta[_SL["joint_harmonic"]][2 * k : 2 * k + 2] for k, t in enumerate(HARMONIC_TERMS)
+        },
     )
+
+
+def _harmonics(joints) -> Array:
+    """`(N, joints, 2·H)`: ``[sin(h·q), cos(h·q)]`` per joint and harmonic h."""
+    hq = joints[..., None] * jnp.asarray(HARMONICS, joints.dtype)
+    return jnp.stack([jnp.sin(hq), jnp.cos(hq)], -1).reshape(*joints.shape, -1)
 
 
 def _flange(eff: Effects, joints, torque) -> jaxlie.SE3:
@@ -117,9 +134,15 @@ def _flange(eff: Effects, joints, torque) -> jaxlie.SE3:
     gravity torques of the nominal link-mass model precomputed (they do not depend on
     the parameters; `flange_poses` recomputes them inside every Jacobian column)."""
     robot = ur10()
-    q = joints + eff.joint_offset + eff.joint_compliance * torque
+    q = joints + eff.joint_offset + eff.joint_compliance * torque + _harmonic_error(eff, joints)
     dh_delta, tilt = dh_corrections(robot, eff)
     return jax.vmap(lambda qq: forward_kinematics(robot, qq, dh_delta, tilt))(q)
+
+
+def _harmonic_error(eff: Effects, joints) -> Array:
+    """`(N, joints)` joint-angle error of the dictionary's harmonics in `eff` [rad]."""
+    c = jnp.stack([eff.terms[t] for t in HARMONIC_TERMS]).reshape(joints.shape[-1], -1)
+    return jnp.einsum("njk,jk->nj", _harmonics(joints), c)
 
 
 def _predict(theta, z0, x0, joints, drift, torque):
@@ -148,7 +171,11 @@ _predict_jit = jax.jit(lambda *a: _predict(*a))
 
 #: θ entries that act on the flange pose through the kinematics, and the rest
 _KINEMATIC = np.r_[
-    _SL["joint_offset"], _SL["link_length"], _SL["link_twist"], _SL["joint_compliance"]
+    _SL["joint_offset"],
+    _SL["link_length"],
+    _SL["link_twist"],
+    _SL["joint_compliance"],
+    _SL["joint_harmonic"],
 ]
 _GLOBAL = np.setdiff1d(np.arange(N_PARAMS), _KINEMATIC)
 
@@ -160,10 +187,11 @@ def _jacobian(theta, z0, x0, joints, drift, torque, measured):
     others forward-mode (16 tangents) — not forward-mode through the kinematics."""
     robot = ur10()
     eff = _effects_of(theta)
-    q = joints + eff.joint_offset + eff.joint_compliance * torque
+    q = joints + eff.joint_offset + eff.joint_compliance * torque + _harmonic_error(eff, joints)
     dh_delta, tilt = dh_corrections(robot, eff)
     flange, g = jax.vmap(lambda qq: flange_jacobian(robot, qq, dh_delta, tilt))(q)
-    # (N, 6, joints, 5) → θ columns; a joint offset moves θ, a compliance τ·θ
+    # (N, 6, joints, 5) → θ columns; a joint offset moves θ, a compliance τ·θ, a
+    # harmonic sin(h·q)·θ or cos(h·q)·θ
     n = q.shape[0]
     kin = jnp.concatenate(
         [
@@ -171,6 +199,7 @@ def _jacobian(theta, z0, x0, joints, drift, torque, measured):
             g[..., 1:3].reshape(n, 6, -1),
             g[..., 3:5].reshape(n, 6, -1),
             g[..., 0] * torque[:, None, :],
+            (g[..., 0, None] * _harmonics(joints)[:, None]).reshape(n, 6, -1),
         ],
         -1,
     )
@@ -291,7 +320,12 @@ class PoseFit:
         return np.asarray(_predict_jit(*(jnp.asarray(a) for a in args)))
 
     def effect_values(self) -> dict[str, list]:
-        return {e: self.theta[_SL[parse_effect_spec(e)[0]]].tolist() for e in self.estimated}
+        out = {}
+        for e in self.estimated:
+            name, idx = parse_effect_spec(e)
+            v = self.theta[_SL[name]]
+            out[e] = (v if name != "joint_harmonic" or idx is None else v[idx]).tolist()
+        return out
 
     def parameters(self) -> dict[str, tuple[float, float]]:
         """Estimated effect parameters {name: (value, σ)} in SI units."""
@@ -309,10 +343,14 @@ class PoseFit:
 def parse_effect_spec(spec: str) -> tuple[str, list[int] | None]:
     """``"joint_compliance"`` → all its parameters; ``"joint_compliance[1,2]"`` → only
     those elements (e.g. the joints that carry the arm's weight)."""
+    if spec in HARMONIC_TERMS:
+        k = HARMONIC_TERMS.index(spec)
+        return "joint_harmonic", [2 * k, 2 * k + 1]
     name, _, rest = spec.partition("[")
     if name not in _SL:
         raise UserError(
-            f"effect {name!r} is not fitted at pose level (choose from {_EFFECT_ORDER})"
+            f"effect {name!r} is not fitted at pose level (choose from {_EFFECT_ORDER} "
+            "or a joint harmonic of the dictionary, e.g. joint2_harmonic1)"
         )
     if not rest:
         return name, None

@@ -25,7 +25,7 @@ from scipy import stats
 
 from .._errors import UserError
 from ..estimate import observation_angles, observation_noise
-from ..model import EFFECT_NAMES, LIBRARY
+from ..model import LIBRARY, amplitude_phase, describe, dictionary, is_effect, term
 from ..recording import Recording
 
 #: significance of a candidate effect, before the Bonferroni division by the candidates
@@ -34,6 +34,13 @@ ALPHA = 0.01
 ALPHA_STRUCTURE = 0.001
 #: contiguous time blocks of the held-out check; odd and even blocks are the two folds
 HELDOUT_BLOCKS = 8
+#: significant candidates refitted per round, strongest score first: the score test is
+#: the refit's likelihood ratio to first order, so a round whose strongest few all fail
+#: the refit or the held-out check has nothing further down to name
+MAX_REFITS = 5
+#: ΔBIC below which the recording does not tell two candidates apart (Kass and Raftery's
+#: "very strong" evidence starts at 10)
+INDISTINCT_BIC = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,13 +48,20 @@ class Step:
     """One named effect: fitted `parameters` {name: (value, σ)} (SI units), the gap after
     adding it [m], and its `score` (likelihood ratio of the refit, dof, p-value, ΔBIC,
     and the held-out gaps before and after it [m]); `candidates`: the score tests of
-    every candidate of the round."""
+    every candidate of the round; `term`: a dictionary term's report (variable,
+    function, coefficients, words, where it acts); `replaces`: effects named before that
+    it made redundant (dropped); `alternatives`: significant candidates of the round
+    whose ΔBIC is within `INDISTINCT_BIC` of its own (the recording does not tell them
+    apart)."""
 
     effect: str
     parameters: dict[str, tuple[float, float]]
     gap_after_m: float
     score: dict[str, Any]
     candidates: dict[str, dict[str, Any]]
+    term: dict[str, Any] | None = None
+    replaces: tuple[str, ...] = ()
+    alternatives: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,10 +89,21 @@ class DiscrepancyResult:
     noise: Any = None
     rejected: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     stopped: str = ""
+    term_residuals: dict[str, tuple] = dataclasses.field(default_factory=dict)
+    included: tuple[str, ...] = ()
 
     @property
     def named(self) -> list[str]:
-        return [s.effect for s in self.steps]
+        """The effects of the final model: those `included` from the start and those
+        named, in order, without any that a later dictionary term replaced
+        (`Step.replaces`)."""
+        dropped = {e for s in self.steps for e in s.replaces}
+        return [e for e in (*self.included, *(s.effect for s in self.steps)) if e not in dropped]
+
+    @property
+    def dropped(self) -> list[str]:
+        """Effects named on the way and dropped when a later term explained them."""
+        return [e for s in self.steps for e in s.replaces]
 
     @property
     def unexplained_where(self) -> list[str]:
@@ -104,9 +129,15 @@ class DiscrepancyResult:
                     },
                     "gap_after_m": s.gap_after_m,
                     "score": s.score,
+                    **({"term": s.term} if s.term is not None else {}),
+                    "replaces": list(s.replaces),
+                    "alternatives": list(s.alternatives),
                 }
                 for s in self.steps
             ],
+            "included": list(self.included),
+            "named": self.named,
+            "dropped": self.dropped,
             "gap_after_m": self.gap_after_m,
             "gap_floor_m": self.gap_floor_m,
             "unexplained": self.unexplained,
@@ -126,6 +157,14 @@ class DiscrepancyResult:
 
         out = Path(out_dir)
         extra = [] if self.noise is None else [noise_figure(out / "noise_model.png", self.noise)]
+        if self.term_residuals:
+            extra.append(
+                structure_figure(
+                    out / "discrepancy_terms.png",
+                    {k: v[0] for k, v in self.term_residuals.items()},
+                    {k: v[1] for k, v in self.term_residuals.items()},
+                )
+            )
         return extra + [
             gap_figure(
                 out / "discrepancy_gap.png",
@@ -161,6 +200,8 @@ def _frame_variables(rec: Recording, angles: np.ndarray) -> dict[str, np.ndarray
             out[f"joint {j + 1}"] = np.broadcast_to(q[:, j, None], (n, m))
         qd = np.gradient(q, rec.time, axis=0)
         qdd = np.gradient(qd, rec.time, axis=0)
+        for j in range(q.shape[1]):
+            out[f"joint {j + 1} velocity"] = np.broadcast_to(qd[:, j, None], (n, m))
         out["joint speed"] = np.broadcast_to(np.linalg.norm(qd, axis=1)[:, None], (n, m))
         out["joint acceleration"] = np.broadcast_to(np.linalg.norm(qdd, axis=1)[:, None], (n, m))
     if rec.program is not None and rec.program.segment is not None:
@@ -256,7 +297,9 @@ def _aligned(rec: Recording, res, values: np.ndarray) -> np.ndarray:
 
 class _HeldOut:
     """Two-fold cross-validation over contiguous time blocks (odd against even): the
-    gap of a model on the blocks it was not fitted to [m]."""
+    gap of a model on the blocks it was not fitted to [m], over the LEDs that the
+    blocks it was fitted to see (an LED seen only in the held-out blocks has no
+    position the fit could determine)."""
 
     def __init__(self, rec: Recording, weights: np.ndarray, var: np.ndarray, space: tuple):
         from ..estimate.calibration import fit, predict_residuals
@@ -270,14 +313,26 @@ class _HeldOut:
         r2, v3 = [], []
         for f in (0, 1):
             train = np.where((self.fold != f)[:, None], self.weights, 0.0)
-            res = self._fit(self.rec, estimate=estimate, weights=train, init=init, space=self.space)
+            res = self._fit(
+                self.rec,
+                estimate=estimate,
+                weights=train,
+                init=init,
+                space=self.space,
+                robust_sigma=False,
+            )
             d = self._predict(self.rec, res)[self.fold == f]
             v = _aligned(self.rec, res, self.var3)[self.fold == f]
-            use = np.isfinite(d[..., 0]) & np.isfinite(v)
+            trained = np.any(_aligned(self.rec, res, train) > 0, axis=0)
+            use = np.isfinite(d[..., 0]) & np.isfinite(v) & trained[None, :]
             r2.append(np.sum(d[use] ** 2, -1))
             v3.append(v[use])
         r2, v3 = np.concatenate(r2), np.concatenate(v3)
         return float(np.sqrt(max(0.0, np.mean(r2) - np.mean(v3))))
+
+
+def _of_effect(name: str, effect: str) -> bool:
+    return name == effect or name.startswith(effect + "[") or name.startswith(effect + ".")
 
 
 def _effect_parameters(res, effect: str) -> dict[str, tuple[float, float]]:
@@ -285,7 +340,7 @@ def _effect_parameters(res, effect: str) -> dict[str, tuple[float, float]]:
     fixed = set(res.identifiability.get("fixed_parameters", []))
     out = {}
     for name in res.parameter_names:
-        if name == effect or name.startswith(effect + "["):
+        if _of_effect(name, effect):
             if name in fixed:
                 continue
             out[name] = (float(_value_of(res, name)), float(sig.get(name, np.nan)))
@@ -293,7 +348,12 @@ def _effect_parameters(res, effect: str) -> dict[str, tuple[float, float]]:
 
 
 def _value_of(res, pname: str) -> float:
-    """Value of a covariance parameter name like ``joint_offset[2]`` or ``link_length[1].a``."""
+    """Value of a covariance parameter name like ``joint_offset[2]``, ``link_length[1].a``
+    or ``joint1_harmonic2.sin``."""
+    head, _, comp = pname.partition(".")
+    t = term(head)
+    if t is not None:
+        return float(np.asarray(res.effects[head], float)[t.components.index(comp)])
     base, _, rest = pname.partition("[")
     v = np.asarray(res.effects.get(base, 0.0), float)
     if not rest:
@@ -318,32 +378,179 @@ def _test(value: float, dof: int, n_obs: int, **extra) -> dict[str, Any]:
     }
 
 
+def _term_block(res, effect: str) -> tuple[np.ndarray, np.ndarray]:
+    """Fitted coefficients of dictionary term `effect` and their covariance (the larger of
+    the Gauss–Newton and the cluster-robust one, as `CalibrationResult.sigma`)."""
+    t = term(effect)
+    names = [f"{effect}.{c}" for c in t.components]
+    idx = [res.parameter_names.index(n) if n in res.parameter_names else -1 for n in names]
+    values = np.asarray(res.effects[effect], float)
+    cov = np.zeros((t.size, t.size))
+    ok = [k for k, i in enumerate(idx) if i >= 0]
+    if ok:
+        sel = [idx[k] for k in ok]
+        blocks = [np.asarray(res.covariance)[np.ix_(sel, sel)]]
+        if res.covariance_robust is not None:
+            blocks.append(np.asarray(res.covariance_robust)[np.ix_(sel, sel)])
+        cov[np.ix_(ok, ok)] = max(blocks, key=lambda b: float(np.trace(b)))
+    return values, cov
+
+
+def _term_inputs(rec: Recording, tau: float):
+    """Per tracker frame: logged joint angles at t + τ, velocity signs, gravity torques."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..model import gravity_torque, interpolate_joints, motion_sign, robot_from_log
+
+    robot = robot_from_log(rec.robot.model, rec.robot.dh)
+    lt, lj = np.asarray(rec.robot.time, float), np.asarray(rec.robot.joints, float)
+    t = np.asarray(rec.time, float) + tau
+    q = interpolate_joints(jnp.asarray(lt), jnp.asarray(lj), jnp.asarray(t))
+    tau_g = jax.vmap(lambda a: gravity_torque(robot, a))(q)
+    return q, jnp.asarray(motion_sign(lt, lj, t)), tau_g
+
+
+def _where_it_acts(rec: Recording, res, effect: str, angles: np.ndarray) -> dict[str, Any]:
+    """Where in the recording term `effect` acts: the range of its variable that the
+    recording covers and the share of frames (joint terms; observations for LED terms)
+    where the fitted term is at least half its peak."""
+    import jax
+    import jax.numpy as jnp
+
+    t = term(effect)
+    c = jnp.asarray(res.effects[effect], float)
+    if t.kind == "joint":
+        q, sign, torque = _term_inputs(rec, res.time_offset)
+        size = np.abs(np.asarray(jax.vmap(lambda a, b, d: t.fn(a, b, d) @ c)(q, sign, torque)))
+        qj = np.asarray(q)[:, t.joint]
+        where = {"variable_range": [float(qj.min()), float(qj.max())], "unit": "rad"}
+    else:
+        th = np.where(np.isfinite(angles), angles, 0.0)
+        y = np.nan_to_num(np.asarray(rec.positions, float))
+        y = np.where(np.isfinite(angles)[..., None], y, 1.0)
+        n = np.zeros_like(y)
+        disp = np.asarray(t.fn(jnp.asarray(y), jnp.asarray(n), jnp.asarray(th)) @ c)
+        size = np.linalg.norm(disp, axis=-1)[np.isfinite(angles)]
+        ok = angles[np.isfinite(angles)]
+        where = {"variable_range": [float(ok.min()), float(ok.max())], "unit": "rad"}
+    peak = float(np.max(size)) if size.size else 0.0
+    where["peak"] = peak
+    where["share_above_half_peak"] = float(np.mean(size >= 0.5 * peak)) if peak > 0 else 0.0
+    return where
+
+
+def _term_report(rec: Recording, res, effect: str, angles: np.ndarray) -> dict[str, Any] | None:
+    """`steps[].term`: a dictionary term's variable, function, coefficients with σ, its
+    description in words and where it acts (None for a library effect)."""
+    t = term(effect)
+    if t is None:
+        return None
+    values, cov = _term_block(res, effect)
+    sig = np.sqrt(np.clip(np.diag(cov), 0, None))
+    out = {
+        "name": effect,
+        "kind": t.kind,
+        "variable": t.variable,
+        "function": t.function,
+        "unit": t.unit,
+        "parameters": {
+            c: {"value": float(v), "sigma": float(e)} for c, v, e in zip(t.components, values, sig)
+        },
+        "words": describe(t, values, cov),
+        "acts": _where_it_acts(rec, res, effect, angles),
+    }
+    if t.harmonic:
+        a, sa, phi, sp = amplitude_phase(values, cov)
+        out.update(amplitude=a, amplitude_sigma=sa, phase_rad=phi, phase_sigma_rad=sp)
+    return out
+
+
+def _without(res, effect: str):
+    """`res` with `effect` set to zero (the start of a refit that leaves it out)."""
+    eff = dict(res.effects)
+    eff[effect] = np.zeros_like(np.asarray(eff[effect], float)).tolist()
+    return dataclasses.replace(res, effects=eff)
+
+
+def _simpler_model(rec, named, current, offered, weights, space, n_obs):
+    """The dictionary term that alone has a lower BIC than the model `named` (fitted as
+    `current`), with its refit, its score and the score tests from the nominal model;
+    None if no term does. The terms tried are the `MAX_REFITS` strongest by the score
+    test from the nominal model."""
+    from ..estimate.calibration import fit, score_effects
+
+    nominal = fit(rec, weights=weights, space=space)
+    tests = {
+        c: _test(v["statistic"], v["dof"], n_obs, test="score", statistic=v["statistic"])
+        for c, v in score_effects(rec, nominal, offered, weights=weights).items()
+        if v["dof"] > 0
+    }
+    k_now = sum(_free_count(current, e) for e in named)
+    bic_now = current.chi2 + k_now * np.log(n_obs)
+    best = None
+    for c in sorted(tests, key=lambda c: -tests[c]["delta_bic"])[:MAX_REFITS]:
+        if tests[c]["delta_bic"] <= 0:
+            break
+        r = fit(rec, estimate=(c,), weights=weights, init=nominal, space=space)
+        k = _free_count(r, c)
+        bic = r.chi2 + k * np.log(n_obs)
+        if k and bic < bic_now and (best is None or bic < best[2]):
+            best = (c, r, bic, k)
+    if best is None:
+        return None
+    c, r, bic, k = best
+    lr = float(nominal.chi2 - r.chi2)
+    score = _test(
+        lr, k, n_obs, likelihood_ratio=lr, delta_bic_against_replaced=float(bic_now - bic)
+    )
+    return c, r, score, tests
+
+
 def discover(
     rec: Recording,
     *,
     candidates: tuple[str, ...] | None = None,
     max_steps: int = 4,
     progress=None,
+    include: tuple[str, ...] = (),
 ) -> DiscrepancyResult:
     """Run the discrepancy workflow on `rec` (needs a robot log and a tool).
 
     `candidates`: effect names to try (default: the library of DESIGN section 7,
-    `robtraj.model.LIBRARY`).
+    `robtraj.model.LIBRARY`, and the dictionary's terms for the robot,
+    `robtraj.model.dictionary`, searched together). `include`: effects the model has
+    from the start (fitted in the nominal fit, e.g. a calibration's set); a named term
+    may replace them like the effects named before it.
     While the gap exceeds its floor, each round scores every remaining candidate at once
     with Rao's score test (`robtraj.estimate.calibration.score_effects`: one pass over
     the recording, one compilation); the significant ones are refitted in order of their
     ΔBIC, and the first whose refit confirms it by the likelihood-ratio test and lowers
     the held-out gap (two folds of alternate time blocks) by more than the floor is
-    named. The search stops when the gap is within its floor, when no candidate
-    qualifies, or when no structure is left against any variable.
+    named. When a dictionary term is named, each effect named before it is tested again
+    next to it (likelihood ratio and held-out gap, as when it was named); those it has
+    made redundant are dropped (`Step.replaces`): one term that explains the structure
+    is preferred to the library effects that stood in for it. The search stops when the
+    gap is within its floor, when no candidate qualifies, or when no structure is left
+    against any variable. Then, if library effects were named, the dictionary terms are
+    tried alone: one with a lower BIC than the whole named model, and a held-out gap
+    no worse by more than the floor, replaces it (a last step whose `replaces` lists
+    them).
     """
     from ..estimate.calibration import fit, library_space, score_effects
 
     say = progress or (lambda _msg: None)
-    candidates = tuple(LIBRARY if candidates is None else candidates)
-    bad = [c for c in candidates if c not in EFFECT_NAMES]
+    if candidates is None:
+        n_joints = 6 if rec.robot is None else int(np.shape(rec.robot.joints)[1])
+        candidates = (*LIBRARY, *dictionary(n_joints))
+    candidates = tuple(c for c in candidates if c not in include)
+    include = tuple(dict.fromkeys(include))
+    bad = [c for c in (*candidates, *include) if not is_effect(c)]
     if bad:
-        raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
+        raise UserError(
+            f"unknown effect(s) {', '.join(bad)} (known: the library {', '.join(LIBRARY)}, "
+            "link_twist and the dictionary's terms, robtraj.model.dictionary)"
+        )
     say("emission angles and the noise model of the recording")
     angles = observation_angles(rec)
     noise_model, var = observation_noise(rec, angles)
@@ -353,8 +560,8 @@ def discover(
 
     say("nominal fit")
     # every fit of the search in one space (library and candidates): one compilation
-    space = library_space(candidates)
-    current = fit(rec, weights=weights, space=space)
+    space = library_space(candidates, include)
+    current = fit(rec, estimate=include, weights=weights, space=space)
     var3 = _aligned(rec, current, 3.0 * var)
     weights_c = _aligned(rec, current, weights)
     n_obs = int(np.isfinite(current.residuals[..., 0]).sum()) * 3
@@ -366,6 +573,7 @@ def discover(
         for k in ("time", "joint 2", "emission angle")
         if k in variables
     }
+    nominal_residuals = current.residuals
 
     def floor_of(res) -> float:
         return _gap_floor(res, var3, noise_model.level_rel_se)
@@ -375,13 +583,14 @@ def discover(
     heldout_gap: float | None = None
     steps: list[Step] = []
     rejected: list[dict[str, Any]] = []
-    named: list[str] = []
+    named: list[str] = list(include)
+    tried: set[str] = set()
     stopped = "max_steps"
     for _ in range(max_steps):
         if gaps[-1] <= floor:
             stopped = "gap_within_floor"
             break
-        remaining = [c for c in candidates if c not in named]
+        remaining = [c for c in candidates if c not in named and c not in tried]
         if not remaining:
             stopped = "no_candidates"
             break
@@ -398,7 +607,7 @@ def discover(
             if scores[c]["p_value"] < alpha and scores[c]["delta_bic"] > 0
         ]
         accepted = None
-        for cand in significant:
+        for cand in significant[:MAX_REFITS]:
             say(f"refitting with {cand}")
             r = fit(rec, estimate=(*named, cand), weights=weights, init=current, space=space)
             k = _free_count(r, cand)
@@ -422,11 +631,55 @@ def discover(
             stopped = "nothing_qualifies"
             break
         best, current, score = accepted
+        # candidates the score test cannot tell from the named one
+        alternatives = tuple(
+            c
+            for c in significant
+            if c != best and scores[best]["delta_bic"] - scores[c]["delta_bic"] < INDISTINCT_BIC
+        )
         named.append(best)
+        replaces: list[str] = []
+        if term(best) is not None:
+            for old in [n for n in named if n != best]:
+                keep = [n for n in named if n != old]
+                say(f"is {old} still needed next to {best}?")
+                r = fit(
+                    rec,
+                    estimate=tuple(keep),
+                    weights=weights,
+                    init=_without(current, old),
+                    space=space,
+                )
+                k = _free_count(current, old)
+                lr = float(r.chi2 - current.chi2)
+                test = _test(lr, max(k, 1), n_obs)
+                needed = test["p_value"] < ALPHA / max(len(candidates), 1) and test["delta_bic"] > 0
+                if needed:
+                    h = heldout.gap(tuple(keep), r)
+                    needed = h - heldout_gap > floor
+                if not needed:
+                    replaces.append(old)
+                    named.remove(old)
+                    tried.add(old)
+                    current = r
+                    heldout_gap = heldout.gap(tuple(named), current)
         gaps.append(_gap(current, var3, _share(current)))
         floor = floor_of(current)
-        steps.append(Step(best, _effect_parameters(current, best), gaps[-1], score, scores))
+        steps.append(
+            Step(
+                best,
+                _effect_parameters(current, best),
+                gaps[-1],
+                score,
+                scores,
+                _term_report(rec, current, best, angles),
+                tuple(replaces),
+                alternatives,
+            )
+        )
         say(f"named {best}: gap {gaps[-2] * 1e6:.1f} → {gaps[-1] * 1e6:.1f} µm")
+        if replaces:
+            say(f"{best} replaces {', '.join(replaces)}")
         # nothing structured left against any variable: no further effect can stand out
         if not any(
             v["significant"] for v in _structure(current.residuals, weights_c, variables).values()
@@ -436,9 +689,47 @@ def discover(
     else:
         if gaps[-1] <= floor:
             stopped = "gap_within_floor"
+    # a simpler model: one dictionary term alone in place of what was named
+    offered = [c for c in candidates if term(c) is not None and c not in named]
+    if offered and any(term(n) is None for n in named):
+        say(f"is one dictionary term a simpler model than {', '.join(named)}?")
+        swap = _simpler_model(rec, named, current, offered, weights, space, n_obs)
+        if swap is not None:
+            c, r, score, tests = swap
+            if heldout_gap is None:
+                heldout_gap = heldout.gap(tuple(named), current)
+            h = heldout.gap((c,), r)
+            score.update(heldout_gap_before_m=heldout_gap, heldout_gap_after_m=h)
+            if h <= heldout_gap + floor:
+                say(f"{c} alone replaces {', '.join(named)}")
+                replaced, named, current, heldout_gap = tuple(named), [c], r, h
+                gaps.append(_gap(current, var3, _share(current)))
+                floor = floor_of(current)
+                steps.append(
+                    Step(
+                        c,
+                        _effect_parameters(current, c),
+                        gaps[-1],
+                        score,
+                        tests,
+                        _term_report(rec, current, c, angles),
+                        replaced,
+                    )
+                )
+            else:
+                rejected.append({"effect": c, **score})
     structure = _structure(current.residuals, weights_c, variables)
     after = {k: _binned_rms(current.residuals, variables, k) for k in before}
     unexplained = gaps[-1] > floor and any(v["significant"] for v in structure.values())
+    term_residuals = {}
+    for name in named:
+        t = term(name)
+        if t is not None and t.frame_variable in variables:
+            v = t.frame_variable
+            term_residuals[v] = (
+                _binned_rms(nominal_residuals, variables, v),
+                _binned_rms(current.residuals, variables, v),
+            )
     return DiscrepancyResult(
         gap_before_m=gap0,
         steps=steps,
@@ -455,4 +746,6 @@ def discover(
         noise=noise_model,
         rejected=rejected,
         stopped=stopped,
+        term_residuals=term_residuals,
+        included=include,
     )

@@ -29,7 +29,13 @@ from jaxtyping import Float
 from .._errors import UserError
 from ..estimate import base_frame_poses
 from ..estimate.calibration import CalibrationResult, fit
-from ..model import interpolate_joints, motion_direction, predict_tool_poses, robot_from_log
+from ..model import (
+    interpolate_joints,
+    motion_direction,
+    motion_sign,
+    predict_tool_poses,
+    robot_from_log,
+)
 from ..recording import Recording
 from ._pose_fit import error_summary
 
@@ -115,6 +121,7 @@ def predicted_tool_poses(rec: Recording, calib, time: np.ndarray) -> jaxlie.SE3:
         q,
         jnp.asarray(direction),
         jnp.asarray(np.nan_to_num(drift)),
+        jnp.asarray(motion_sign(log_t, joints, t)),
     )
 
 

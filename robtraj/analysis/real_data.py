@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from ._pose_fit import (
+    HARMONIC_TERMS,
     PoseFit,
     cross_predict,
     error_summary,
@@ -93,6 +94,9 @@ CANDIDATES = (
 #: the kinematic calibration: the full geometric error set (DH lengths, twists and
 #: Hayati's tilt of parallel axes, zero offsets), its degeneracies fixed by identifiability
 CALIBRATION = ("joint_offset", "link_length", "link_twist")
+#: the dictionary's terms the pose fit takes: every joint's angle harmonics
+#: (`robtraj.model.dictionary`; ``run_workflow(candidates=CANDIDATES + DICTIONARY)``)
+DICTIONARY = HARMONIC_TERMS
 #: smallest relative improvement of the cross-series error that counts
 MIN_CROSS_GAIN = 0.02
 
@@ -259,6 +263,12 @@ def _relative_gain(before: dict, after: dict, which: int | None = None) -> dict[
     return out
 
 
+def _group(spec: str) -> str:
+    """What naming `spec` takes out of the candidates: its effect (all of
+    ``joint_compliance`` with ``joint_compliance[1,2]``), or the term itself."""
+    return spec if spec in HARMONIC_TERMS else parse_effect_spec(spec)[0]
+
+
 def run_workflow(
     series: dict[str, PoseSeries],
     *,
@@ -294,8 +304,8 @@ def run_workflow(
     rejected: list[dict[str, Any]] = []
     tried: list[dict[str, Any]] = []
     for rnd in range(max_steps):
-        taken = {parse_effect_spec(c)[0] for c in named}
-        remaining = [c for c in candidates if parse_effect_spec(c)[0] not in taken]
+        taken = {_group(c) for c in named}
+        remaining = [c for c in candidates if _group(c) not in taken]
         if not remaining:
             break
         base_cross = _cross_cost(current)

@@ -47,7 +47,9 @@ def register(sub) -> argparse.ArgumentParser:
         "--estimate",
         default="",
         metavar="NAME,...",
-        help="effects to estimate as well, comma-separated: " + ", ".join(EFFECT_NAMES),
+        help="effects to estimate as well, comma-separated: "
+        + ", ".join(EFFECT_NAMES)
+        + ", or a dictionary term (e.g. joint2_harmonic1)",
     )
     p.add_argument(
         "--json",
@@ -73,15 +75,16 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .._progress import progress_status
-    from ..model import EFFECT_NAMES
+    from ..model import EFFECT_NAMES, is_effect
     from ..recording import read_recording
 
     _output.check([args.out, args.json], force=args.force)
     estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())
-    bad = [e for e in estimate if e not in EFFECT_NAMES]
+    bad = [e for e in estimate if not is_effect(e)]
     if bad:
         raise UserError(
-            f"unknown effect(s) in --estimate: {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})"
+            f"unknown effect(s) in --estimate: {', '.join(bad)} "
+            f"(known: {', '.join(EFFECT_NAMES)} and the dictionary's terms)"
         )
     if args.max_steps < 1:
         raise UserError(f"--max-steps must be at least 1, not {args.max_steps}")

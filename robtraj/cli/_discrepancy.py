@@ -18,10 +18,13 @@ def register(sub) -> argparse.ArgumentParser:
         description=(
             "Fit the nominal model, localise the disagreement, score each effect of the "
             "library (time_offset, joint_offset, link_length, joint_compliance, backlash, "
-            "led_angle_bias, tracker_scale, thermal_drift) by a score test, refit with the "
-            "best and name it when the likelihood-ratio test and BIC confirm it, with the "
-            "noise measured at the static dwells; repeat; report structure that no library "
-            "effect explains. Exit status: 0 when the final calibration converged, 3 when "
+            "led_angle_bias, tracker_scale, thermal_drift) and each term of the dictionary "
+            "(joint-angle harmonics, velocity-sign and torque² joint errors, LED biases along "
+            "the emission axis and the line of sight, a scale per camera axis) by a score "
+            "test, refit with the best and name it when the likelihood-ratio test, BIC and "
+            "held-out time blocks confirm it; a dictionary term replaces the library effects "
+            "that stood in for it; repeat; report structure that nothing explains. "
+            "Exit status: 0 when the final calibration converged, 3 when "
             "its solve stopped before its convergence criterion held (result still written), "
             "2 on bad input."
         ),
@@ -49,7 +52,7 @@ def register(sub) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from .._progress import progress_status
-    from ..analysis.discrepancy import discover
+    from ..analysis.discrepancy import INDISTINCT_BIC, discover
     from ..recording import read_recording
     from ._calibrate import check_leds_seen
 
@@ -69,16 +72,36 @@ def run(args: argparse.Namespace) -> int:
             f"{k} = {v['value']:.4g} ± {v['sigma']:.2g}" for k, v in s["parameters"].items()
         )
         held = s["score"]
+        what = s["term"]["words"] if "term" in s else params
         print(
             f"+ {s['effect']}: gap {s['gap_after_m'] * 1e6:.1f} µm "
             f"(ΔBIC {held['delta_bic']:.0f}; held-out gap {held['heldout_gap_before_m'] * 1e6:.1f}"
-            f" → {held['heldout_gap_after_m'] * 1e6:.1f} µm); {params}"
+            f" → {held['heldout_gap_after_m'] * 1e6:.1f} µm); {what}"
         )
+        if "term" in s:
+            acts = s["term"]["acts"]
+            lo, hi = acts["variable_range"]
+            print(
+                f"  acts over {s['term']['variable']} from {lo:.2f} to {hi:.2f} rad, at least "
+                f"half its peak in {100 * acts['share_above_half_peak']:.0f} % of the recording"
+            )
+        if s["alternatives"]:
+            print(
+                f"  not told apart from: {', '.join(s['alternatives'])} (ΔBIC within "
+                f"{INDISTINCT_BIC:.0f}; a recording with more of their variables' range would)"
+            )
+        if s["replaces"]:
+            print(
+                f"  replaces {', '.join(s['replaces'])}: named before, not needed next to it "
+                "(they stood in for it)"
+            )
     for r in doc["rejected"]:
         print(
             f"  not named: {r['effect']} (significant, but the held-out gap moves only "
             f"{r['heldout_gap_before_m'] * 1e6:.1f} → {r['heldout_gap_after_m'] * 1e6:.1f} µm)"
         )
+    if doc["dropped"]:
+        print(f"final model: {', '.join(doc['named']) or 'nominal'}")
     print(
         f"gap after: {doc['gap_after_m'] * 1e6:.1f} µm "
         f"(what a complete model leaves by chance: {doc['gap_floor_m'] * 1e6:.1f} µm)"
@@ -90,7 +113,8 @@ def run(args: argparse.Namespace) -> int:
         if doc["steps"]:
             print(
                 "the named effects may partly stand in for it: an effect outside the library "
-                "is absorbed by library effects as far as the data cannot tell them apart"
+                "and the dictionary is absorbed by them as far as the data cannot tell them "
+                "apart (register a term of your own: robtraj.model.register_effect)"
             )
     else:
         print("no structured residual left beyond the noise")

@@ -38,7 +38,8 @@ def register(sub) -> argparse.ArgumentParser:
         default=[],
         metavar="NAME=VALUE",
         help="hide a physical effect (SI units; comma-separated per joint): "
-        + ", ".join(EFFECT_NAMES),
+        + ", ".join(EFFECT_NAMES)
+        + ", or a dictionary term (e.g. joint2_harmonic1=SIN,COS)",
     )
     p.add_argument("--no-truth", action="store_true", help="leave /truth out of the file")
     p.add_argument("--force", action="store_true", help="overwrite OUT.h5 if it exists")

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
-from ..model import RobotModel, interpolate_joints, motion_direction, robot_from_log
+from ..model import RobotModel, interpolate_joints, motion_direction, motion_sign, robot_from_log
 from ..recording import Recording
 
 #: minimum number of tracker frames inside the robot log's time span
@@ -34,7 +34,8 @@ class CalibrationData:
     - `time` `(n,)` tracker clock [s]; `frame` `(n,)` index into the recording's frames.
     - `measured` `(n, m, 3)` LED positions in the camera frame [m], 0 where unseen.
     - `seen` `(n, m)` bool.
-    - `direction` `(n, joints)` sign of each joint's motion (for `backlash`).
+    - `direction` `(n, joints)` sign of each joint's motion (for `backlash`);
+      `moving` `(n, joints)` sign of each joint's velocity, 0 at rest (`motion_sign`).
     - `drift` `(n,)` drift variable of `thermal_drift`: camera temperature change [K]
       since the first frame, or minutes since the first frame without temperatures.
     - `log_time` `(k,)`, `joints` `(k, joints)`: the robot log (robot clock).
@@ -50,6 +51,7 @@ class CalibrationData:
     measured: np.ndarray
     seen: np.ndarray
     direction: np.ndarray
+    moving: np.ndarray
     drift: np.ndarray
     log_time: np.ndarray
     joints: np.ndarray
@@ -162,6 +164,7 @@ def prepare(
         measured=pos,
         seen=seen,
         direction=np.asarray(direction, np.float64),
+        moving=np.asarray(motion_sign(log_time, joints, t[frames] + time_offset), np.float64),
         drift=drift,
         log_time=log_time,
         joints=joints,

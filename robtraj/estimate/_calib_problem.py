@@ -40,6 +40,8 @@ from ..model import (
     interpolate_joints,
     led_positions,
     motion_direction,
+    motion_sign,
+    term,
 )
 from ._calib_data import CalibrationData
 
@@ -61,6 +63,7 @@ class Frames(eqx.Module):
 
     time: Float[Array, "*f"]
     direction: Float[Array, "*f joints"]
+    moving: Float[Array, "*f joints"]  # sign of the joint velocities, 0 at rest
     drift: Float[Array, "*f"]
     measured: Float[Array, "*f leds 3"]
     sqrt_weight: Float[Array, "*f leds"]
@@ -83,16 +86,27 @@ class BundleProblem(eqx.Module):
     rigid_leds: bool = eqx.field(static=True, default=False)
 
 
+def is_kinematic(name: str) -> bool:
+    """Whether effect `name` changes the flange pose (library or dictionary joint term)."""
+    t = term(name)
+    return name in KINEMATIC_EFFECTS or (t is not None and t.kind == "joint")
+
+
+def is_led_level(name: str) -> bool:
+    """Whether effect `name` acts on the LED positions given the tool pose."""
+    t = term(name)
+    return name in LED_EFFECTS or (t is not None and t.kind == "led")
+
+
 def effect_sizes(effects: Effects, free: tuple[str, ...]) -> list[int]:
-    return [int(np.size(getattr(effects, n))) for n in free]
+    return [int(np.size(effects.get(n))) for n in free]
 
 
 def apply_effects(effects: Effects, free: tuple[str, ...], delta: Array) -> Effects:
     i = 0
     for name in free:
-        old = getattr(effects, name)
-        new = old + delta[i : i + old.size].reshape(old.shape)
-        effects = eqx.tree_at(lambda e, name=name: getattr(e, name), effects, new)
+        old = effects.get(name)
+        effects = effects.replace(name, old + delta[i : i + old.size].reshape(old.shape))
         i += old.size
     return effects
 
@@ -114,7 +128,7 @@ def tool_poses(
         pass
     elif problem.kinematic:
         q = interpolate_joints(problem.log_time, problem.joints, frames.time + eff.time_offset)
-        base_from_flange = flange_poses(problem.robot, eff, q, frames.direction)
+        base_from_flange = flange_poses(problem.robot, eff, q, frames.direction, frames.moving)
     else:
         base_from_flange = jaxlie.SE3(frames.base_from_flange)
     cam = camera_from_base_at(cfb, eff, frames.drift)
@@ -167,7 +181,9 @@ def _kinematic_twists(g, problem: BundleProblem, frames: Frames):
     def joints(t, compliance):
         e = eqx.tree_at(lambda x: x.joint_compliance, eff, compliance)
         q = interpolate_joints(problem.log_time, problem.joints, t)
-        return jax.vmap(lambda a, d: effective_joints(robot, e, a, d))(q, frames.direction)
+        return jax.vmap(lambda a, d, m: effective_joints(robot, e, a, d, m))(
+            q, frames.direction, frames.moving
+        )
 
     t = frames.time + eff.time_offset
     c = eff.joint_compliance
@@ -176,7 +192,7 @@ def _kinematic_twists(g, problem: BundleProblem, frames: Frames):
     torque = tangent(jnp.zeros_like(t), jnp.ones_like(c))
     dh_delta, tilt = dh_corrections(robot, eff)
     flange, twist = jax.vmap(lambda a: flange_jacobian(robot, a, dh_delta, tilt))(q_eff)
-    return flange, twist, rate, torque
+    return flange, twist, rate, torque, t
 
 
 def _effect_columns(g, problem: BundleProblem, frames: Frames, tool0, ad, kinematics) -> Array:
@@ -186,12 +202,19 @@ def _effect_columns(g, problem: BundleProblem, frames: Frames, tool0, ad, kinema
     camera←base; LED-level effects do not move the tool."""
     n = frames.time.shape[0]
     if kinematics is not None:
-        _, twist, rate, torque = kinematics
+        _, twist, rate, torque, t_robot = kinematics
         dh = jnp.einsum("cab,cbjk->cajk", ad, twist)  # (C, 6, joints, [θ, d, a, α, β])
         turn = dh[..., 0]
+        q_log = None
     cols = []
     for name, size in zip(problem.free, effect_sizes(problem.effects, problem.free)):
-        if name == "time_offset":
+        t = term(name)
+        if t is not None and t.kind == "joint":
+            if q_log is None:
+                q_log = interpolate_joints(problem.log_time, problem.joints, t_robot)
+            phi = jax.vmap(t.fn)(q_log, frames.moving, torque)  # (C, k)
+            col = turn[:, :, t.joint, None] * phi[:, None, :]
+        elif name == "time_offset":
             col = jnp.einsum("caj,cj->ca", turn, rate)[..., None]
         elif name == "joint_offset":
             col = turn
@@ -217,7 +240,7 @@ def _led_effect_columns(problem: BundleProblem) -> list[int]:
     """Indices in g of effect entries that act on the LED positions directly."""
     cols, i = [], 12
     for name, size in zip(problem.free, effect_sizes(problem.effects, problem.free)):
-        if name in LED_EFFECTS:
+        if is_led_level(name):
             cols += list(range(i, i + size))
         i += size
     return cols
@@ -231,7 +254,9 @@ def _chunk_terms(g, p, problem, frames, per_frame=False):
     Two-stage chain rule (forward mode): per frame, the tool-pose tangent ξ of
     ``T(g) = T(0) exp(ξ)`` w.r.t. g (q tangents, per frame only); per LED, the LED
     position w.r.t. ξ (6 tangents), w.r.t. the LED-level effects and w.r.t. its own
-    constellation entry (3 tangents).
+    constellation entry (3 tangents). The products are taken in the frame's local
+    coordinates k = [ξ, LED-level effects] first (``Σ_LEDs KᵀWK``, 6 + l square) and
+    mapped to g once per frame (``Gᵀ(·)G``), never as a `(frames, LEDs, 3, q)` Jacobian.
     """
     tool0, tool_g = _tool_jacobian(g, problem, frames)
     eff0 = apply_effects(problem.effects, problem.free, g[12:])
@@ -255,11 +280,15 @@ def _chunk_terms(g, p, problem, frames, per_frame=False):
             lambda x: leds(x, p, g_led), (xi0,), (jnp.broadcast_to(eye6[a], xi0.shape),)
         )[1]
 
-    jac_xi = jnp.stack([t_xi(a) for a in range(6)], axis=-1)  # (C, M, 3, 6)
-    jac_g = jnp.einsum("cmia,cag->cmig", jac_xi, tool_g)
+    k_loc = jnp.stack([t_xi(a) for a in range(6)], axis=-1)  # (C, M, 3, 6)
+    # G maps g to the local coordinates: ξ = tool_g · g, the LED-level effects selected
+    gmap = tool_g
     if led_cols:
         jl = jax.jacfwd(lambda gl: leds(xi0, p, gl))(g_led)  # (C, M, 3, L)
-        jac_g = jac_g.at[..., jnp.asarray(led_cols)].add(jl)
+        k_loc = jnp.concatenate([k_loc, jl], -1)
+        sel = jnp.zeros((len(led_cols), g.shape[0]), g.dtype)
+        sel = sel.at[jnp.arange(len(led_cols)), jnp.asarray(led_cols)].set(1.0)
+        gmap = jnp.concatenate([tool_g, jnp.broadcast_to(sel, tool_g.shape[:1] + sel.shape)], 1)
     eye3 = jnp.eye(3, dtype=p.dtype)
 
     def t_p(a):
@@ -270,14 +299,16 @@ def _chunk_terms(g, p, problem, frames, per_frame=False):
     jac_p = jnp.stack([t_p(a) for a in range(3)], axis=-1)  # (C, M, 3, 3)
     sw = frames.sqrt_weight[..., None]
     r = sw * (frames.measured - pred)
-    jg = sw[..., None] * jac_g
+    kw = sw[..., None] * k_loc
     jp = sw[..., None] * jac_p
     c = "c" if per_frame else ""
+    a_loc = jnp.einsum("cmik,cmil->ckl", kw, kw)
+    n_loc = jnp.einsum("cmik,cmia->cmka", kw, jp)
     return (
-        jnp.einsum(f"cmiq,cmir->{c}qr", jg, jg),
-        jnp.einsum(f"cmiq,cmia->{c}qma", jg, jp),
+        jnp.einsum(f"ckq,ckl,clr->{c}qr", gmap, a_loc, gmap),
+        jnp.einsum(f"ckq,cmka->{c}qma", gmap, n_loc),
         jnp.einsum(f"cmia,cmib->{c}mab", jp, jp),
-        jnp.einsum("cmiq,cmi->cq", jg, r),
+        jnp.einsum("ckq,ck->cq", gmap, jnp.einsum("cmik,cmi->ck", kw, r)),
         jnp.einsum("cmia,cmi->cma", jp, r),
         jnp.sum(r * r),
     )
@@ -410,7 +441,7 @@ def fixed_flange_poses(robot: RobotModel, effects: Effects, log_time, joints, ch
 
     def body(_, frames):
         q = interpolate_joints(log_time, joints, frames.time + effects.time_offset)
-        return None, flange_poses(robot, effects, q, frames.direction).wxyz_xyz
+        return None, flange_poses(robot, effects, q, frames.direction, frames.moving).wxyz_xyz
 
     _, out = jax.lax.scan(body, None, chunks)
     return out
@@ -470,6 +501,7 @@ def chunked_frames(data: CalibrationData, sqrt_w: np.ndarray, size: int) -> Fram
     return Frames(
         time=padded(data.time),
         direction=padded(data.direction),
+        moving=padded(data.moving),
         drift=padded(data.drift),
         measured=padded(data.measured),
         sqrt_weight=padded(sqrt_w, fill_last=False),
@@ -509,6 +541,7 @@ def probe_observations(probe, data: CalibrationData, tau: float) -> ProbeObserva
     frames = Frames(
         time=jnp.asarray(t),
         direction=jnp.asarray(motion_direction(data.log_time, data.joints, t + tau)),
+        moving=jnp.asarray(motion_sign(data.log_time, data.joints, t + tau)),
         drift=jnp.asarray(np.interp(t, data.time, data.drift)),
         measured=jnp.zeros((t.size, 0, 3)),
         sqrt_weight=jnp.zeros((t.size, 0)),

@@ -96,7 +96,7 @@ def _observe(bundle: BundleData, q: jax.Array):
 
 def _q_count(bundle: BundleData) -> int:
     eff = bundle.problem.effects
-    return 12 + sum(int(np.size(getattr(eff, n))) for n in bundle.problem.free)
+    return 12 + sum(int(np.size(eff.get(n))) for n in bundle.problem.free)
 
 
 def _static_problem(bundle: BundleData, q: jax.Array, sqrt_w: jax.Array):
@@ -115,6 +115,7 @@ def _static_problem(bundle: BundleData, q: jax.Array, sqrt_w: jax.Array):
     frames = Frames(
         time=jnp.arange(k, dtype=q.dtype),
         direction=jnp.zeros_like(q),
+        moving=jnp.zeros_like(q),
         drift=jnp.zeros(k, q.dtype),
         measured=jnp.zeros((k, m, 3), q.dtype),
         sqrt_weight=sqrt_w,

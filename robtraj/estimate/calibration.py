@@ -61,6 +61,7 @@ from ..model import (
     LIBRARY,
     Effects,
     effect_component_names,
+    known_effects,
     redundant_link_parameters,
 )
 from ..recording import Pose, Recording
@@ -151,7 +152,7 @@ def _global_names(effects: Effects, free: tuple[str, ...]) -> list[str]:
     names = [f"camera_from_base.{t}" for t in _TANGENT]
     names += [f"flange_from_tool.{t}" for t in _TANGENT]
     for name in free:
-        names += effect_component_names(name, np.shape(getattr(effects, name)))
+        names += effect_component_names(name, np.shape(effects.get(name)))
     return names
 
 
@@ -216,6 +217,7 @@ def fit(
     suggest: int = 0,
     space: Sequence[str] = (),
     hold: Sequence[str] = (),
+    robust_sigma: bool = True,
 ) -> CalibrationResult:
     """Bundle-calibrate `recording` (see the module docstring).
 
@@ -241,6 +243,10 @@ def fit(
       estimated ones. The estimate is the same; fits of one recording in one space share
       one compilation whatever they estimate (the discrepancy search fits in the whole
       library's space), at the price of Jacobian columns for the held effects.
+    - `robust_sigma`: compute the cluster-robust covariance (one more pass over the
+      recording, with per-cluster sums); False leaves the Gauss–Newton one in its place
+      (fits whose parameters are not reported, e.g. the discrepancy search's held-out
+      fits).
     - `hold`: parameter groups held at their start values (`init`'s): any of
       ``"camera_from_base"``, ``"flange_from_tool"``, ``"constellation"`` (to refit only
       the rigid transforms of another recording under a calibrated model).
@@ -323,17 +329,20 @@ def fit(
     unused_frame, unused_led = np.nonzero(~used)
     full_res[data.frame[unused_frame], unused_led] = np.nan
     cluster, n_clusters = _clusters(data, bundle.chunks)
-    # the cluster count is static to the kernel: padded so that recordings of one shape
-    # share a compilation; the empty clusters are cut before the jackknife
-    padded = -(-n_clusters // 64) * 64
-    h, _, chi2, cluster_h, scores = (
-        np.asarray(x)
-        for x in bundle_normal_clustered(
-            jnp.zeros(len(st.names_theta)), bundle, jnp.asarray(cluster), padded
+    if robust_sigma:
+        # the cluster count is static to the kernel: padded so that recordings of one
+        # shape share a compilation; the empty clusters are cut before the jackknife
+        padded = -(-n_clusters // 64) * 64
+        h, _, chi2, cluster_h, scores = (
+            np.asarray(x)
+            for x in bundle_normal_clustered(
+                jnp.zeros(len(st.names_theta)), bundle, jnp.asarray(cluster), padded
+            )
         )
-    )
-    keep = np.r_[np.arange(n_clusters), np.arange(padded, cluster_h.shape[0])]
-    cluster_h, scores = cluster_h[keep], scores[keep]
+        keep = np.r_[np.arange(n_clusters), np.arange(padded, cluster_h.shape[0])]
+        cluster_h, scores = cluster_h[keep], scores[keep]
+    else:
+        h, _, chi2 = (np.asarray(x) for x in _normal_at_zero(bundle, len(st.names_theta)))
     chi2 = float(chi2)
     n_res = 3 * int(used.sum()) + (6 * int(bundle.probe.probed.shape[0]) if bundle.probe else 0)
     cov_unit, rank = covariance(h, free_mask)
@@ -343,9 +352,12 @@ def fit(
     t[:q, :q] = np.eye(q)
     t[q:, q:] = basis
     cov_phi = t @ (s2 * cov_unit) @ t.T
-    cov_robust = t @ robust_covariance(h, free_mask, cluster_h, scores) @ t.T
-    g_eff = effective_clusters(h, free_mask, cluster_h, t)
-    del cluster_h, scores
+    if robust_sigma:
+        cov_robust = t @ robust_covariance(h, free_mask, cluster_h, scores) @ t.T
+        g_eff = effective_clusters(h, free_mask, cluster_h, t)
+        del cluster_h, scores
+    else:
+        cov_robust, g_eff = cov_phi, np.full(t.shape[0], np.nan)
     phi_names = st.names_theta[:q] + [
         f"constellation[LED {int(i)}].{c}" for i in data.led_ids for c in ("x", "y", "z")
     ]
@@ -367,7 +379,7 @@ def fit(
 
     problem = bundle.problem
     eff = problem.effects
-    effects_out = {n: np.asarray(getattr(eff, n)).tolist() for n in free}
+    effects_out = {n: np.asarray(eff.get(n)).tolist() for n in free}
     effects_out.update({k: v for k, v in eff.to_dict().items() if k not in effects_out})
     ident = {
         **ident,
@@ -548,9 +560,7 @@ def score_effects(
 
     **Returns:** ``{effect: {"statistic", "dof", "parameters", "fixed"}}`` (χ² units).
     """
-    bad = [e for e in candidates if e not in EFFECT_NAMES]
-    if bad:
-        raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
+    _check_names(candidates)
     w = current.weights if weights is None else weights
     space = library_space(candidates, current.estimated, tuple(current.effects))
     st = _setup(recording, space, current, w, chunk, lambda _m: None)
@@ -561,7 +571,7 @@ def score_effects(
     mine = set(current.estimated)
 
     def entries(effect):
-        return [i for i, n in enumerate(names[: st.q]) if n == effect or n.startswith(effect + "[")]
+        return [i for i, n in enumerate(names[12 : st.q], 12) if _effect_of(n) == effect]
 
     base = np.zeros(len(names), bool)
     base[:12] = True
@@ -594,16 +604,26 @@ def library_space(*extra: Sequence[str]) -> tuple[str, ...]:
     `EFFECT_NAMES` order: the problem space of the discrepancy search, shared by its
     fits, score tests and held-out predictions so that they compile once."""
     wanted = set(LIBRARY).union(*map(set, extra))
-    return tuple(n for n in EFFECT_NAMES if n in wanted)
+    return tuple(n for n in known_effects() if n in wanted)
+
+
+def _check_names(names) -> None:
+    known = known_effects()
+    bad = [e for e in names if e not in known]
+    if bad:
+        raise UserError(
+            f"unknown effect(s) {', '.join(bad)} (known: the library "
+            f"{', '.join(LIBRARY)}, link_twist and the dictionary's terms)"
+        )
 
 
 def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()) -> _Setup:
     estimate = tuple(dict.fromkeys(estimate))
-    bad = [e for e in (*estimate, *space) if e not in EFFECT_NAMES]
-    if bad:
-        raise UserError(f"unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECT_NAMES)})")
-    free = tuple(n for n in EFFECT_NAMES if n in estimate or n in space)
-    estimated = tuple(n for n in EFFECT_NAMES if n in estimate)
+    _check_names((*estimate, *space))
+    order = known_effects()
+    free = tuple(n for n in order if n in estimate or n in space)
+    estimated = tuple(n for n in order if n in estimate)
+    dictionary_terms = tuple(n for n in free if n not in EFFECT_NAMES)
 
     # observations
     reference = start = None
@@ -617,7 +637,10 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()
         start = start[[col[int(i)] for i in data.led_ids]]
     else:
         start = data.reference
-    effects0 = Effects.zeros(data.robot.n_joints)
+    init_terms = [n for n in (init.effects if init is not None else ()) if n not in EFFECT_NAMES]
+    effects0 = Effects.zeros(
+        data.robot.n_joints, tuple(dict.fromkeys((*dictionary_terms, *init_terms)))
+    )
     if init is not None:
         for k, v in init.effects.items():
             effects0 = effects0.with_value(k, v)
@@ -639,7 +662,9 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()
     probe = cp.probe_observations(recording.probe, data, tau0)
     gauge = "probe" if probe is not None else "reference_constellation"
     basis = cp.gauge_basis(data.reference, data.led_seen, probe is not None)
-    kinematic = any(n in cp.KINEMATIC_EFFECTS for n in free)
+    kinematic = any(cp.is_kinematic(n) for n in free) or any(
+        cp.is_kinematic(n) for n in effects0.terms
+    )
     problem = BundleProblem(
         robot=data.robot,
         camera_from_base=jnp.asarray(z),
@@ -651,8 +676,13 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()
         joints=jnp.asarray(data.joints),
         free=free,
         kinematic=kinematic,
-        rigid_leds=not any(n in cp.LED_EFFECTS for n in free)
-        and all(float(np.max(np.abs(getattr(effects0, n)))) == 0.0 for n in cp.LED_EFFECTS),
+        # LED-level effects held at zero have zero columns: the rigid path serves
+        rigid_leds=not any(cp.is_led_level(n) for n in estimated)
+        and all(
+            float(np.max(np.abs(effects0.get(n)))) == 0.0
+            for n in (*cp.LED_EFFECTS, *effects0.terms)
+            if cp.is_led_level(n)
+        ),
     )
     chunks = cp.chunked_frames(data, np.sqrt(w_user), cp.chunk_size(data.n_frames, chunk))
     # the observations live on in `chunks`; the frame-major copy is not needed again
@@ -667,9 +697,7 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()
     names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
     held = set(free) - set(estimated)
     redundant = set(redundant_link_parameters(data.robot))
-    in_model = np.array(
-        [n.partition("[")[0] not in held and n not in redundant for n in names_theta]
-    )
+    in_model = np.array([_effect_of(n) not in held and n not in redundant for n in names_theta])
     has_column = np.concatenate([np.ones(q, bool), np.any(basis != 0, axis=0)])
     n_res = 3 * int(np.sum(w_user > 0)) + (0 if probe is None else 6 * probe.probed.shape[0])
     normal0 = _normal_at_zero(bundle, len(names_theta)) if normal else None
@@ -694,6 +722,12 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()
         h0=h0,
         normal0=normal0,
     )
+
+
+def _effect_of(parameter: str) -> str:
+    """The effect a parameter name belongs to: ``link_length[1].a`` → ``link_length``,
+    ``joint1_harmonic2.sin`` → ``joint1_harmonic2``."""
+    return parameter.partition("[")[0].partition(".")[0]
 
 
 def _phi_names_for(names_theta, q, basis, data) -> list[str]:

@@ -6,12 +6,25 @@ the effect library.
 """
 
 from ._camera import CameraModel, emission_angle, in_volume, noise_sigma
+from ._dictionary import (
+    HARMONICS,
+    Term,
+    amplitude_phase,
+    default_terms,
+    describe,
+    dictionary,
+    register_effect,
+    term,
+    unregister_effect,
+)
 from ._effects import (
     BIAS_REFERENCE_ANGLE,
     EFFECT_NAMES,
     LIBRARY,
     Effects,
     effect_component_names,
+    is_effect,
+    known_effects,
     parse_effect,
 )
 from ._kinematics import (
@@ -35,6 +48,7 @@ from ._measurement import (
     interpolate_joints,
     led_positions,
     motion_direction,
+    motion_sign,
     predict_tool_poses,
 )
 from ._tool import hemispherical_tool
@@ -44,12 +58,18 @@ __all__ = [
     "BUILTIN_ROBOTS",
     "CameraModel",
     "EFFECT_NAMES",
+    "HARMONICS",
     "Effects",
     "LIBRARY",
     "RobotModel",
+    "Term",
     "abb_irb2400_16",
+    "amplitude_phase",
     "camera_from_base_at",
+    "default_terms",
+    "describe",
     "dh_corrections",
+    "dictionary",
     "effect_component_names",
     "effective_joints",
     "emission_angle",
@@ -61,13 +81,19 @@ __all__ = [
     "in_volume",
     "interpolate_joints",
     "inverse_kinematics",
+    "is_effect",
     "joint_frames",
+    "known_effects",
     "led_positions",
     "motion_direction",
+    "motion_sign",
     "noise_sigma",
     "parse_effect",
     "predict_tool_poses",
     "redundant_link_parameters",
+    "register_effect",
     "robot_from_log",
+    "term",
+    "unregister_effect",
     "ur10",
 ]

@@ -15,6 +15,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._camera import emission_angle
+from ._dictionary import joint_term_error, led_term_offset
 from ._effects import BIAS_REFERENCE_ANGLE, Effects
 from ._kinematics import RobotModel, forward_kinematics, gravity_torque
 
@@ -69,17 +70,35 @@ def motion_direction(
     return out[k]
 
 
+def motion_sign(
+    log_time: np.ndarray, joints: np.ndarray, t: np.ndarray, threshold: float = 1e-3
+) -> np.ndarray:
+    """Sign (−1, 0, +1) of each joint's velocity at times `t`: 0 where the joint is slower
+    than `threshold` [rad/s] (the dictionary's velocity-sign terms act only in motion).
+    numpy (data, not a parameter)."""
+    v = np.gradient(joints, log_time, axis=0)
+    sign = np.where(np.abs(v) > threshold, np.sign(v), 0.0)
+    k = np.clip(np.searchsorted(log_time, t, side="right") - 1, 0, len(log_time) - 1)
+    return sign[k]
+
+
 def effective_joints(
     robot: RobotModel,
     effects: Effects,
     q: Float[Array, " joints"],
     direction: Float[Array, " joints"],
+    moving: Float[Array, " joints"] | None = None,
 ) -> Float[Array, " joints"]:
-    """Joint angles the links really take: log + offset + backlash + gravity deflection."""
+    """Joint angles the links really take: log + offset + backlash + gravity deflection
+    + the dictionary's joint terms (`moving`: `motion_sign`, zero if None)."""
     torque = gravity_torque(robot, q)
-    return (
+    out = (
         q + effects.joint_offset + effects.backlash * direction + effects.joint_compliance * torque
     )
+    if effects.terms:
+        s = jnp.zeros_like(q) if moving is None else moving
+        out = out + joint_term_error(effects.terms, q, s, torque)
+    return out
 
 
 def dh_corrections(
@@ -102,14 +121,18 @@ def flange_poses(
     effects: Effects,
     q: Float[Array, "n joints"],
     direction: Float[Array, "n joints"],
+    moving: Float[Array, "n joints"] | None = None,
 ) -> jaxlie.SE3:
     """base←flange for each frame (batched SE3) with the kinematic effects applied."""
     dh_delta, tilt = dh_corrections(robot, effects)
+    moving = jnp.zeros_like(q) if moving is None else moving
 
-    def one(qq, dd):
-        return forward_kinematics(robot, effective_joints(robot, effects, qq, dd), dh_delta, tilt)
+    def one(qq, dd, mm):
+        return forward_kinematics(
+            robot, effective_joints(robot, effects, qq, dd, mm), dh_delta, tilt
+        )
 
-    return jax.vmap(one)(q, direction)
+    return jax.vmap(one)(q, direction, moving)
 
 
 def camera_from_base_at(
@@ -132,14 +155,16 @@ def led_positions(
     """Measured LED positions [m] in the camera frame for batched camera←tool poses.
 
     Applies `led_angle_bias` along each LED's emission axis (by its emission angle seen
-    from the camera at the origin) and `tracker_scale`.
+    from the camera at the origin), the dictionary's LED terms and `tracker_scale`.
     """
     pts = jax.vmap(lambda T: jax.vmap(T.apply)(constellation))(camera_from_tool)
     nrm = jax.vmap(lambda T: jax.vmap(T.rotation().apply)(normals))(camera_from_tool)
     theta = emission_angle(pts, nrm)
     weight = (1.0 - jnp.cos(theta)) / (1.0 - np.cos(BIAS_REFERENCE_ANGLE))
-    pts = pts + (effects.led_angle_bias * weight)[..., None] * nrm
-    return (1.0 + effects.tracker_scale) * pts
+    offset = (effects.led_angle_bias * weight)[..., None] * nrm
+    if effects.terms:
+        offset = offset + led_term_offset(effects.terms, pts, nrm, theta)
+    return (1.0 + effects.tracker_scale) * (pts + offset)
 
 
 def predict_tool_poses(
@@ -150,8 +175,9 @@ def predict_tool_poses(
     q: Float[Array, "n joints"],
     direction: Float[Array, "n joints"],
     drift_variable: Float[Array, " n"],
+    moving: Float[Array, "n joints"] | None = None,
 ) -> jaxlie.SE3:
     """camera←tool for each frame from joint angles (already at t + τ) and the effects."""
-    base_from_flange = flange_poses(robot, effects, q, direction)
+    base_from_flange = flange_poses(robot, effects, q, direction, moving)
     cam = camera_from_base_at(camera_from_base, effects, drift_variable)
     return cam @ base_from_flange @ flange_from_tool

@@ -12,12 +12,16 @@ from ._scenarios import (
     iso_cube_truth,
 )
 from ._simulate import joint_dwells, simulate
+from ._unmodelled import PeriodicJointError, SightLineBias, VelocityDeadbandError
 
 __all__ = [
     "DEFAULT_DURATION",
     "ISO_CUBE_CENTRE",
     "ISO_CUBE_SIDE",
     "Move",
+    "PeriodicJointError",
+    "SightLineBias",
+    "VelocityDeadbandError",
     "SCENARIOS",
     "iso_cube_corner_truth",
     "iso_cube_cycles",

@@ -18,7 +18,13 @@ from ._motion import LINEAR_ACCELERATION, Corner, Move, ring, ring_peak
 FACING_CAMERA = Rotation.from_matrix(np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]))
 
 #: iso_cube: 30 pose cycles (the standard's number) and the path test
-DEFAULT_DURATION = {"paper": 30.0, "calibration": 60.0, "iso_cube": 610.0, "crossing": 20.0}
+DEFAULT_DURATION = {
+    "paper": 30.0,
+    "calibration": 60.0,
+    "workspace": 60.0,
+    "iso_cube": 610.0,
+    "crossing": 20.0,
+}
 
 #: ISO 9283 cube used by `iso_cube`: centre in the base frame [m] and side [m]
 ISO_CUBE_CENTRE = np.array([1.15, 0.0, 0.95])
@@ -67,6 +73,30 @@ def calibration(duration: float, rng: np.random.Generator) -> list[Move]:
         moves.append(
             Move(p, _q(tilt * spin * FACING_CAMERA), "start" if i == 0 else "joint", 0.0, 1.0)
         )
+    return moves
+
+
+def workspace(duration: float, rng: np.random.Generator) -> list[Move]:
+    """As `calibration`, with the static poses spread over as much of the visible
+    workspace as the robot reaches (the base turns by about ±0.8 rad, the arm from
+    folded to stretched): the joint-space coverage a kinematic calibration wants, and
+    that tells joint-angle functions (harmonics) apart."""
+    n = max(6, int(duration / 2.6))
+    shoulder = np.array([0.1, 0.0, 0.615])
+    moves = []
+    while len(moves) < n:
+        p = rng.uniform([0.6, -0.9, 0.35], [1.45, 0.9, 1.6])
+        if not 0.75 < np.linalg.norm(p - shoulder) < 1.3:
+            continue
+        axis = rng.normal(size=3)
+        axis[0] = 0.0
+        axis /= np.linalg.norm(axis)
+        # face the camera (at x ≈ 3.2 m, y = 0) from where the tool is
+        yaw = Rotation.from_euler("z", np.arctan2(-p[1], 3.2 - p[0]))
+        tilt = Rotation.from_rotvec(np.deg2rad(rng.uniform(5.0, 30.0)) * axis)
+        spin = Rotation.from_euler("x", rng.uniform(-90.0, 90.0), degrees=True)
+        start = "start" if not moves else "joint"
+        moves.append(Move(p, _q(yaw * tilt * spin * FACING_CAMERA), start, 0.0, 1.0))
     return moves
 
 
@@ -228,7 +258,13 @@ def crossing(duration: float, rng: np.random.Generator) -> list[Move]:
     return moves
 
 
-SCENARIOS = {"paper": paper, "calibration": calibration, "iso_cube": iso_cube, "crossing": crossing}
+SCENARIOS = {
+    "paper": paper,
+    "calibration": calibration,
+    "workspace": workspace,
+    "iso_cube": iso_cube,
+    "crossing": crossing,
+}
 
 
 def scenario_moves(name: str, duration: float, rng: np.random.Generator) -> list[Move]:

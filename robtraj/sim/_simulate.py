@@ -22,12 +22,14 @@ from ..model import (
     interpolate_joints,
     led_positions,
     motion_direction,
+    motion_sign,
     noise_sigma,
     predict_tool_poses,
 )
 from ..recording import Pose, Program, Recording, RobotLog, Truth
 from ._motion import Move, joint_log
 from ._scenarios import DEFAULT_DURATION, scenario_moves
+from ._unmodelled import describe as describe_unmodelled
 
 ROBOT_RATE = 250.0  # [Hz] joint log rate of the controller
 #: nominal camera placement: at (3.2, 0, 1.0) m in the base frame, optical axis along −x
@@ -64,10 +66,11 @@ def _observe(
     drift,
     p,
     n,
+    moving,
 ):
     q = interpolate_joints(log_time, joints, t)
     tool = predict_tool_poses(
-        robot, effects, camera_from_base, flange_from_tool, q, direction, drift
+        robot, effects, camera_from_base, flange_from_tool, q, direction, drift, moving
     )
     leds = led_positions(tool, effects, p, n)
     normals = jax.vmap(lambda T: jax.vmap(T.rotation().apply)(n))(tool)
@@ -92,6 +95,7 @@ def simulate(
     robot: str = "abb_irb2400_16",
     truth: bool = True,
     moves: Sequence[Move] | None = None,
+    unmodelled: Sequence = (),
 ) -> Recording:
     """Simulate a tracker recording of `scenario` (seeded, reproducible).
 
@@ -102,6 +106,9 @@ def simulate(
     mount, ~50 µm per LED); the recording carries the nominal tool and, unless
     `truth=False`, the truth in `/truth`. `moves`: a program of the caller's (e.g. from
     `joint_dwells`) instead of the scenario's; the truth is that of the same `seed`.
+    `unmodelled`: physics outside robtraj's model (`robtraj.sim.PeriodicJointError`,
+    `VelocityDeadbandError`, `SightLineBias`), described in the truth's effects under
+    ``"unmodelled"``.
     """
     duration = DEFAULT_DURATION.get(scenario, 30.0) if duration is None else float(duration)
     if not (duration > 0 and np.isfinite(duration)):
@@ -160,8 +167,16 @@ def simulate(
             jnp.asarray(drift),
             jnp.asarray(constellation),
             jnp.asarray(tool.normals),
+            jnp.asarray(motion_sign(log_time, joints, t_track + tau)),
         )
     )
+    for effect in unmodelled:
+        if hasattr(effect, "leds"):
+            leds = effect.leds(leds, theta)
+    logged = joints
+    for effect in unmodelled:
+        if hasattr(effect, "log"):
+            logged = effect.log(log_time, logged)
     facing = theta < camera.max_emission_angle
     dropped = rng.random(theta.shape) < camera.dropout
     seen = inside & facing & ~dropped
@@ -180,7 +195,10 @@ def simulate(
             camera_from_base=_pose(camera_from_base),
             flange_from_tool=_pose(flange_from_tool),
             constellation=constellation,
-            effects=effects.to_dict(),
+            effects={
+                **effects.to_dict(),
+                **({"unmodelled": describe_unmodelled(unmodelled)} if unmodelled else {}),
+            },
         )
     return Recording(
         time=t_track,
@@ -189,7 +207,7 @@ def simulate(
         positions=positions,
         status=status,
         temperature=temperature.astype(np.float32),
-        robot=RobotLog(time=log_time, joints=joints, model=robot, dh=None),
+        robot=RobotLog(time=log_time, joints=logged, model=robot, dh=None),
         program=Program(
             targets=Pose(targets, quats),
             motion=np.array([m.motion for m in moves]),

@@ -1,5 +1,7 @@
-"""Discrepancy discovery when the library has nothing to name: no hidden effect (false
-positives over 20 seeds, 40 on demand) and an effect outside the library (reported as unexplained)."""
+"""Discrepancy discovery when there is nothing to name: no hidden effect (false positives
+over 20 seeds, 40 on demand) and an effect outside both the library and the dictionary
+(reported as unexplained); a periodic encoder error, outside the library, is named as
+its dictionary term."""
 
 import json
 
@@ -27,38 +29,59 @@ def test_nothing_hidden_nothing_named_and_the_gap_within_its_floor(seeds, allowe
     assert len(above) <= allowed, above
 
 
-def _periodic_encoder_error(seed=3):
-    rec, _ = _hidden({}, seed=seed)
+def _logged(rec, error):
     q = rec.robot.joints.copy()
-    # the encoder of joint 2 has a periodic error: the logged angle is off by A·sin(4·q2)
-    q[:, 1] -= 4e-4 * np.sin(4 * q[:, 1])
+    q[:, 1] -= error(q)
     return rec.replace(robot=rec.robot.__class__(rec.robot.time, q, rec.robot.model, rec.robot.dh))
 
 
+def _periodic_encoder_error(seed=3):
+    """The encoder of joint 2 has a periodic error: the logged angle is off by A·sin(4·q2)."""
+    return _logged(_hidden({}, seed=seed)[0], lambda q: 4e-4 * np.sin(4 * q[:, 1]))
+
+
+def _coupled_error(seed=3):
+    """Joint 2's angle is off by a function of joints 3 and 4 (a cable carrier): in
+    neither the library nor the dictionary."""
+    rec = _hidden({}, seed=seed)[0]
+    return _logged(rec, lambda q: 6e-4 * np.cos(3 * q[:, 2]) * np.sin(q[:, 3]))
+
+
 @pytest.fixture(scope="module")
-def encoder_error():
-    return discover(_periodic_encoder_error())
+def coupled_error():
+    return discover(_coupled_error(), max_steps=2)
 
 
-def test_an_effect_outside_the_library_is_reported_as_unexplained_with_its_joint(encoder_error):
-    res = encoder_error
-    assert res.unexplained
-    assert "joint 2" in res.unexplained_where[:3], res.unexplained_where
+def test_an_effect_outside_library_and_dictionary_is_reported_as_unexplained(coupled_error):
+    res = coupled_error
+    assert res.unexplained and res.gap_after_m > res.gap_floor_m
+    assert "joint 4" in res.unexplained_where[:3], res.unexplained_where
+
+
+def test_a_periodic_encoder_error_is_named_as_its_harmonic():
+    """Outside the library (four library effects absorbed 86 % of it), inside the
+    dictionary: named as joint 2's fourth harmonic, alone, with its amplitude and phase."""
+    res = discover(_periodic_encoder_error())
+    assert res.named == ["joint2_harmonic4"], res.named
+    t = res.steps[0].term
+    assert abs(t["amplitude"] - 4e-4) < 3 * t["amplitude_sigma"], t
+    assert abs(np.angle(np.exp(1j * t["phase_rad"]))) < 3 * t["phase_sigma_rad"], t
+    assert res.gap_after_m <= res.gap_floor_m
 
 
 def test_cli_writes_the_design_json_and_the_report_and_refuses_to_overwrite(
-    tmp_path, capsys, monkeypatch, encoder_error
+    tmp_path, capsys, monkeypatch, coupled_error
 ):
     """The command around the workflow: input checks, what it prints, the JSON, the
     figures, no overwriting. The workflow's result on this recording is the one tested
     above; the command gets it without a second search."""
     path = tmp_path / "rec.h5"
-    write_recording(_periodic_encoder_error(), path)
+    write_recording(_coupled_error(), path)
     seen = []
 
     def search(rec, progress=None):
         seen.append(rec.n_frames)
-        return encoder_error
+        return coupled_error
 
     monkeypatch.setattr("robtraj.analysis.discrepancy.discover", search)
     out, report = tmp_path / "disc.json", tmp_path / "report"
@@ -68,11 +91,11 @@ def test_cli_writes_the_design_json_and_the_report_and_refuses_to_overwrite(
     assert doc["unexplained"] and doc["gap_after_m"] < doc["gap_before_m"]
     for step in doc["steps"]:
         assert {"effect", "parameters", "gap_after_m", "score"} <= set(step)
-    assert seen == [_periodic_encoder_error().n_frames]  # the recording read from the file
+    assert seen == [_coupled_error().n_frames]  # the recording read from the file
     assert (report / "discrepancy_gap.png").stat().st_size > 10_000
     assert (report / "discrepancy_structure.png").stat().st_size > 10_000
     text = capsys.readouterr().out
-    assert "unexplained structure remains, against: joint 2" in text
+    assert "unexplained structure remains, against: " in text and "joint 4" in text
     assert "stand in for it" in text
     # no overwriting, one-line errors with exit code 2
     assert main(["discrepancy", str(path), "--json", str(out)]) == 2

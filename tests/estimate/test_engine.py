@@ -114,23 +114,28 @@ def test_identifiability_names_an_exact_null_direction_and_covariance_excludes_i
     np.testing.assert_allclose(cov[:3, :3], 2.0 * np.linalg.inv(h[:3, :3]), rtol=1e-8)
 
 
-def test_bundle_normal_equations_are_those_of_the_pure_residuals():
+@pytest.mark.parametrize("terms", ["library", "dictionary"])
+def test_bundle_normal_equations_are_those_of_the_pure_residuals(terms):
     """Chunk-accumulated ``JᵀJ``, ``Jᵀr`` at a θ away from the current values (where the
-    SE3 corrections need their right Jacobian), with every effect free and non-zero,
-    equal those of `residuals` through `jax.jacfwd` over all frames at once."""
+    SE3 corrections need their right Jacobian), with every effect free and non-zero (the
+    library's, or every term of the dictionary as well), equal those of `residuals`
+    through `jax.jacfwd` over all frames at once."""
     from robtraj.estimate import calibration as cal
-    from robtraj.model import EFFECT_NAMES
+    from robtraj.model import EFFECT_NAMES, dictionary
     from robtraj.sim import simulate
 
     rec = simulate("paper", seed=0, duration=8.0, rate=25.0)
     # every effect free: the closed-form effect columns of the tool pose are checked too
-    st = cal._setup(rec, EFFECT_NAMES, None, None, 16, lambda _m: None)
+    names = EFFECT_NAMES + (dictionary(6) if terms == "dictionary" else ())
+    st = cal._setup(rec, names, None, None, 16, lambda _m: None)
     rng = np.random.default_rng(3)
     theta = np.zeros(len(st.names_theta))
     theta[:12] = rng.normal(0, 2e-3, 12)
     theta[12 : st.q] = rng.normal(0, 1e-4, st.q - 12)
     compliance = [i for i, n in enumerate(st.names_theta) if n.startswith("joint_compliance")]
     theta[compliance] = rng.normal(0, 1e-6, len(compliance))  # [rad/(N·m)]
+    squared = [i for i, n in enumerate(st.names_theta) if "torque_squared" in n]
+    theta[squared] = rng.normal(0, 1e-8, len(squared))  # [rad/(N·m)²]
     theta[st.q :] = rng.normal(0, 1e-4, theta.size - st.q) * st.has_column[st.q :]
     theta = jnp.asarray(theta)
     h, b, c = normal_at(cal.bundle_normal, theta, st.bundle)  # compiled by `_setup`

@@ -1,0 +1,322 @@
+"""The dictionary: candidate terms beyond the effect library, each linear in its coefficients.
+
+A term is an effect the one forward model can add and the engine can fit:
+
+- a **joint term** adds ``Δqⱼ = φ(q, s, τ) · c`` to one joint's angle, with `q` the logged
+  joint angles [rad], `s` the sign of each joint's velocity (0 while it stands still,
+  `motion_sign`) and `τ` the gravity torques [N·m];
+- an **LED term** moves every LED observation by ``Φ(y, n, θ) · c`` [m] in the camera
+  frame, with `y` the LED's position [m], `n` its emission axis and `θ` its emission
+  angle [rad].
+
+Terms are linear in their coefficients ``c`` (a phase is a sine and a cosine
+coefficient), so their Jacobian columns are closed forms and a whole dictionary is
+screened with one pass of the normal equations. The default dictionary
+(`default_terms`) has, per joint, harmonics of the joint angle (1 to 4 cycles per
+revolution; harmonics of the motor-side angle need a gear ratio, which the built-in
+robots do not carry), an error of the sign of the joint velocity and one of the signed square of
+the gravity torque; per tracker, LED biases along the emission axis and along the line
+of sight, and a scale per camera axis. Users add their own with `register_effect`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._errors import UserError
+
+#: joints the default dictionary has terms for (a robot uses those it has)
+MAX_JOINTS = 9
+#: harmonics of each joint angle in the default dictionary [cycles per revolution]
+HARMONICS = (1, 2, 3, 4)
+#: emission angle [rad] the LED terms' angle functions are normalised at (as
+#: `led_angle_bias`): ``u(θ) = (1 − cos θ)/(1 − cos 60°)``
+_U_REF = 1.0 - math.cos(math.radians(60.0))
+
+
+@dataclasses.dataclass(frozen=True)
+class Term:
+    """One dictionary term (see the module docstring).
+
+    - `name`: the effect name (``joint1_harmonic2``); `components`: names of its
+      coefficients (``("sin", "cos")``), each in `unit`.
+    - `kind`: ``"joint"`` (adds to joint `joint`, 0-based) or ``"led"``.
+    - `fn`: joint terms ``fn(q, s, τ) -> (k,)`` per frame (rad per unit coefficient);
+      LED terms ``fn(y, n, θ) -> (..., 3, k)`` [m per unit coefficient].
+    - `variable`: what the term is a function of, in words (``"q1"``, ``"θ"``);
+      `function`: the term with coefficients named by its components
+      (``"sin·sin(2·q1) + cos·cos(2·q1)"``); `frame_variable`: the variable of the
+      discrepancy workflow's localisation the residual is plotted against.
+    - `harmonic`: cycles per revolution for a harmonic (reported as amplitude and phase).
+    """
+
+    name: str
+    kind: str
+    components: tuple[str, ...]
+    unit: str
+    fn: Callable
+    variable: str
+    function: str
+    frame_variable: str
+    joint: int = -1
+    harmonic: int = 0
+
+    @property
+    def size(self) -> int:
+        return len(self.components)
+
+
+def _harmonic(j: int, h: int) -> Term:
+    def fn(q, s, tau):
+        return jnp.stack([jnp.sin(h * q[j]), jnp.cos(h * q[j])])
+
+    v = f"q{j + 1}"
+    return Term(
+        name=f"joint{j + 1}_harmonic{h}",
+        kind="joint",
+        components=("sin", "cos"),
+        unit="rad",
+        fn=fn,
+        variable=v,
+        function=f"sin·sin({h}·{v}) + cos·cos({h}·{v})",
+        frame_variable=f"joint {j + 1}",
+        joint=j,
+        harmonic=h,
+    )
+
+
+def _velocity_sign(j: int) -> Term:
+    return Term(
+        name=f"joint{j + 1}_velocity_sign",
+        kind="joint",
+        components=("value",),
+        unit="rad",
+        fn=lambda q, s, tau: s[j : j + 1],
+        variable=f"sign(q̇{j + 1})",
+        function=f"value·sign(q̇{j + 1}) (0 at rest)",
+        frame_variable=f"joint {j + 1} velocity",
+        joint=j,
+    )
+
+
+def _torque_squared(j: int) -> Term:
+    return Term(
+        name=f"joint{j + 1}_torque_squared",
+        kind="joint",
+        components=("value",),
+        unit="rad/(N·m)²",
+        fn=lambda q, s, tau: (tau[j] * jnp.abs(tau[j]))[None],
+        variable=f"τ{j + 1}",
+        function=f"value·τ{j + 1}·|τ{j + 1}|",
+        frame_variable=f"joint {j + 1}",
+        joint=j,
+    )
+
+
+def _u(theta):
+    return (1.0 - jnp.cos(theta)) / _U_REF
+
+
+def _sight(y):
+    return y / jnp.linalg.norm(y, axis=-1, keepdims=True)
+
+
+def _led_terms() -> list[Term]:
+    return [
+        Term(
+            name="led_axis_bias",
+            kind="led",
+            components=("value",),
+            unit="m",
+            fn=lambda y, n, th: (n * (_u(th) ** 2)[..., None])[..., None],
+            variable="θ",
+            function="value·u(θ)² along the emission axis, u = (1 − cos θ)/(1 − cos 60°)",
+            frame_variable="emission angle",
+        ),
+        Term(
+            name="led_sight_bias",
+            kind="led",
+            components=("constant", "angle"),
+            unit="m",
+            fn=lambda y, n, th: jnp.stack([_sight(y), _sight(y) * _u(th)[..., None]], axis=-1),
+            variable="θ",
+            function="(constant + angle·u(θ)) along the line of sight, "
+            "u = (1 − cos θ)/(1 − cos 60°)",
+            frame_variable="emission angle",
+        ),
+        Term(
+            name="tracker_axis_scale",
+            kind="led",
+            components=("x", "y", "z"),
+            unit="1",
+            fn=lambda y, n, th: y[..., :, None] * jnp.eye(3, dtype=y.dtype),
+            variable="camera x, y, z",
+            function="x·y_x, y·y_y, z·y_z (a scale per camera axis)",
+            frame_variable="emission angle",
+        ),
+    ]
+
+
+def default_terms(n_joints: int = MAX_JOINTS) -> tuple[Term, ...]:
+    """The built-in dictionary for a robot of `n_joints` joints (module docstring)."""
+    out = []
+    for j in range(n_joints):
+        out += [_harmonic(j, h) for h in HARMONICS]
+        out += [_velocity_sign(j), _torque_squared(j)]
+    return (*out, *_led_terms())
+
+
+_REGISTRY: dict[str, Term] = {t.name: t for t in default_terms()}
+#: names a term may not take: the library's effects (`reserve`, called by `_effects`)
+_RESERVED: set[str] = set()
+_USER: list[str] = []
+
+
+def register_effect(
+    name: str,
+    fn: Callable,
+    components: Sequence[str],
+    *,
+    kind: str = "joint",
+    joint: int | None = None,
+    unit: str = "rad",
+    variable: str = "",
+    function: str = "",
+    frame_variable: str | None = None,
+) -> Term:
+    """Add a term of the user's to the dictionary (the discrepancy search then tries it).
+
+    `fn` is linear in the coefficients named by `components`: for ``kind="joint"`` the
+    term adds ``fn(q, s, τ) @ c`` [rad] to joint `joint` (1-based), with `q` the logged
+    joint angles [rad], `s` the signs of the joint velocities (0 at rest) and `τ` the
+    gravity torques [N·m], each `(joints,)`, returning `(k,)`; for ``kind="led"`` it
+    moves each LED observation by ``fn(y, n, θ) @ c`` [m] (camera frame), with `y`
+    `(..., 3)` the LED position, `n` `(..., 3)` its emission axis, `θ` `(...)` its
+    emission angle, returning `(..., 3, k)`. `fn` must be a JAX function (it is
+    differentiated and compiled). Returns the `Term`; a name already taken raises
+    `UserError`.
+    """
+    if not name.isidentifier():
+        raise UserError(f"effect name {name!r} must be an identifier")
+    if name in _RESERVED or name in _REGISTRY:
+        raise UserError(f"effect {name!r} exists already")
+    if kind not in ("joint", "led"):
+        raise UserError(f"kind must be 'joint' or 'led', got {kind!r}")
+    if kind == "joint" and (joint is None or joint < 1):
+        raise UserError("a joint term needs joint=N (1-based)")
+    comps = tuple(components)
+    if not comps:
+        raise UserError("a term needs at least one coefficient")
+    j = -1 if kind == "led" else int(joint) - 1
+    term = Term(
+        name=name,
+        kind=kind,
+        components=comps,
+        unit=unit,
+        fn=fn,
+        variable=variable or (f"q{j + 1}" if kind == "joint" else "θ"),
+        function=function or f"{name}({', '.join(comps)})",
+        frame_variable=frame_variable
+        or (f"joint {j + 1}" if kind == "joint" else "emission angle"),
+        joint=j,
+    )
+    _REGISTRY[name] = term
+    _USER.append(name)
+    return term
+
+
+def reserve(names) -> None:
+    """Keep `names` (the library's effect fields) from being registered as terms."""
+    _RESERVED.update(names)
+
+
+def unregister_effect(name: str) -> None:
+    """Remove a term added by `register_effect`."""
+    if name not in _USER:
+        raise UserError(f"{name!r} is not a registered term")
+    _USER.remove(name)
+    del _REGISTRY[name]
+
+
+def term(name: str) -> Term | None:
+    """The dictionary term called `name` (None for a library effect or an unknown name)."""
+    return _REGISTRY.get(name)
+
+
+def dictionary(n_joints: int) -> tuple[str, ...]:
+    """Names of the dictionary's terms for a robot of `n_joints` joints: the built-in
+    ones and those registered, in that order."""
+    return tuple(t.name for t in _REGISTRY.values() if t.joint < n_joints)
+
+
+def term_names() -> tuple[str, ...]:
+    """Every term name the dictionary knows (any robot)."""
+    return tuple(_REGISTRY)
+
+
+def joint_term_error(terms: dict, q: jnp.ndarray, s: jnp.ndarray, tau: jnp.ndarray) -> jnp.ndarray:
+    """Sum of the joint terms in `terms` {name: coefficients} for one frame `(joints,)` [rad]."""
+    out = jnp.zeros_like(q)
+    for name, c in terms.items():
+        t = _REGISTRY[name]
+        if t.kind == "joint":
+            out = out.at[t.joint].add(jnp.dot(t.fn(q, s, tau), c))
+    return out
+
+
+def led_term_offset(terms: dict, y, n, theta):
+    """Sum of the LED terms in `terms` for LED positions `y` `(..., 3)` [m]."""
+    out = jnp.zeros_like(y)
+    for name, c in terms.items():
+        t = _REGISTRY[name]
+        if t.kind == "led":
+            out = out + jnp.einsum("...ik,k->...i", t.fn(y, n, theta), c)
+    return out
+
+
+def has_led_terms(names) -> bool:
+    return any(_REGISTRY[n].kind == "led" for n in names if n in _REGISTRY)
+
+
+def amplitude_phase(values: np.ndarray, cov: np.ndarray) -> tuple[float, float, float, float]:
+    """``(A, σ_A, φ, σ_φ)`` of ``s·sin x + c·cos x = A·sin(x + φ)`` from ``[s, c]`` and
+    their 2×2 covariance (first-order propagation)."""
+    s, c = float(values[0]), float(values[1])
+    a = math.hypot(s, c)
+    phi = math.atan2(c, s)
+    if a == 0.0:
+        return 0.0, float(np.sqrt(np.trace(cov) / 2)), 0.0, math.pi
+    ja = np.array([s, c]) / a
+    jp = np.array([-c, s]) / a**2
+    return a, float(np.sqrt(max(ja @ cov @ ja, 0.0))), phi, float(np.sqrt(max(jp @ cov @ jp, 0.0)))
+
+
+def _fmt(value: float, sigma: float, unit: str) -> str:
+    if unit == "rad":
+        return f"{value * 1e3:.3g} ± {sigma * 1e3:.2g} mrad"
+    if unit == "m":
+        return f"{value * 1e6:.3g} ± {sigma * 1e6:.2g} µm"
+    return f"{value:.3g} ± {sigma:.2g} {unit}"
+
+
+def describe(t: Term, values: np.ndarray, cov: np.ndarray) -> str:
+    """The term with its fitted coefficients in words, e.g.
+    ``joint 1 angle error 0.25 ± 0.01 mrad · sin(2·q1 + 1.00 rad)``."""
+    values = np.asarray(values, float)
+    cov = np.asarray(cov, float)
+    sig = np.sqrt(np.clip(np.diag(cov), 0, None))
+    if t.harmonic:
+        a, sa, phi, sp = amplitude_phase(values, cov)
+        return (
+            f"joint {t.joint + 1} angle error {_fmt(a, sa, t.unit)} · "
+            f"sin({t.harmonic}·{t.variable} {'+' if phi >= 0 else '−'} {abs(phi):.2f} rad)"
+            f" (phase σ {sp:.2f} rad)"
+        )
+    parts = ", ".join(f"{c} {_fmt(v, s, t.unit)}" for c, v, s in zip(t.components, values, sig))
+    what = f"joint {t.joint + 1} angle error" if t.kind == "joint" else t.name.replace("_", " ")
+    return f"{what}: {parts}; {t.function}"

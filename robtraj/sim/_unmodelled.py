@@ -1,0 +1,72 @@
+"""Physics the simulator can add that robtraj's forward model does not know.
+
+Each is written here in numpy, independently of `robtraj.model` (neither the effect
+library nor the dictionary), so that a recording carrying one tests whether the
+discrepancy search finds and names it rather than reproducing its own formulas. A joint
+effect changes what the controller logs (the tracker sees the true arm); an LED effect
+changes what the tracker measures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+_U_REF = 1.0 - np.cos(np.deg2rad(60.0))
+
+
+@dataclasses.dataclass(frozen=True)
+class PeriodicJointError:
+    """The encoder of `joint` (1-based) is off by ``amplitude·sin(cycles·q + phase)``
+    [rad] (an eccentric or a transmission error): the controller logs the true angle
+    minus it."""
+
+    joint: int
+    cycles: int
+    amplitude: float
+    phase: float = 0.0
+
+    def log(self, time: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        out = joints.copy()
+        q = joints[:, self.joint - 1]
+        out[:, self.joint - 1] = q - self.amplitude * np.sin(self.cycles * q + self.phase)
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class VelocityDeadbandError:
+    """Joint `joint` (1-based) trails its logged angle by ``amplitude`` [rad] against the
+    direction of motion while it turns faster than `deadband` [rad/s], and not at all
+    slower (friction wind-up that relaxes at rest; backlash, by contrast, holds)."""
+
+    joint: int
+    amplitude: float
+    deadband: float = 0.02
+
+    def log(self, time: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        out = joints.copy()
+        v = np.gradient(joints[:, self.joint - 1], time)
+        out[:, self.joint - 1] -= self.amplitude * np.sign(v) * (np.abs(v) > self.deadband)
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class SightLineBias:
+    """Each LED is measured `amplitude` [m] too far along the line of sight from the
+    camera at 60° emission angle, as ``(1 − cos θ)/(1 − cos 60°)`` (a spot centroid
+    shifted by the LED's package, seen in depth)."""
+
+    amplitude: float
+
+    def leds(self, leds: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        sight = leds / np.linalg.norm(leds, axis=-1, keepdims=True)
+        return leds + (self.amplitude * (1.0 - np.cos(theta)) / _U_REF)[..., None] * sight
+
+
+def describe(effects) -> list[dict]:
+    """JSON-able descriptions of unmodelled effects (for the truth)."""
+    return [
+        {"kind": type(e).__name__, **(dataclasses.asdict(e) if dataclasses.is_dataclass(e) else {})}
+        for e in effects
+    ]
