@@ -429,7 +429,8 @@ def _where_it_acts(rec: Recording, res, effect: str, angles: np.ndarray) -> dict
         th = np.where(np.isfinite(angles), angles, 0.0)
         y = np.nan_to_num(np.asarray(rec.positions, float))
         y = np.where(np.isfinite(angles)[..., None], y, 1.0)
-        n = np.zeros_like(y)
+        # a term's size does not depend on which unit direction it acts along
+        n = y / np.linalg.norm(y, axis=-1, keepdims=True)
         disp = np.asarray(t.fn(jnp.asarray(y), jnp.asarray(n), jnp.asarray(th)) @ c)
         size = np.linalg.norm(disp, axis=-1)[np.isfinite(angles)]
         ok = angles[np.isfinite(angles)]
