@@ -25,7 +25,15 @@ from scipy import stats
 
 from .._errors import UserError
 from ..estimate import observation_angles, observation_noise
-from ..model import LIBRARY, amplitude_phase, describe, dictionary, is_effect, term
+from ..model import (
+    LIBRARY,
+    MOTION_THRESHOLD,
+    amplitude_phase,
+    describe,
+    dictionary,
+    is_effect,
+    term,
+)
 from ..recording import Recording
 
 #: significance of a candidate effect, before the Bonferroni division by the candidates
@@ -396,8 +404,9 @@ def _term_block(res, effect: str) -> tuple[np.ndarray, np.ndarray]:
     return values, cov
 
 
-def _term_inputs(rec: Recording, tau: float):
-    """Per tracker frame: logged joint angles at t + τ, velocity signs, gravity torques."""
+def _term_inputs(rec: Recording, tau: float, threshold: float):
+    """Per tracker frame: logged joint angles at t + τ, velocity signs (0 slower than
+    `threshold` [rad/s]), gravity torques."""
     import jax
     import jax.numpy as jnp
 
@@ -408,7 +417,7 @@ def _term_inputs(rec: Recording, tau: float):
     t = np.asarray(rec.time, float) + tau
     q = interpolate_joints(jnp.asarray(lt), jnp.asarray(lj), jnp.asarray(t))
     tau_g = jax.vmap(lambda a: gravity_torque(robot, a))(q)
-    return q, jnp.asarray(motion_sign(lt, lj, t)), tau_g
+    return q, jnp.asarray(motion_sign(lt, lj, t, threshold)), tau_g
 
 
 def _where_it_acts(rec: Recording, res, effect: str, angles: np.ndarray) -> dict[str, Any]:
@@ -421,7 +430,7 @@ def _where_it_acts(rec: Recording, res, effect: str, angles: np.ndarray) -> dict
     t = term(effect)
     c = jnp.asarray(res.effects[effect], float)
     if t.kind == "joint":
-        q, sign, torque = _term_inputs(rec, res.time_offset)
+        q, sign, torque = _term_inputs(rec, res.time_offset, res.motion_threshold)
         size = np.abs(np.asarray(jax.vmap(lambda a, b, d: t.fn(a, b, d) @ c)(q, sign, torque)))
         qj = np.asarray(q)[:, t.joint]
         where = {"variable_range": [float(qj.min()), float(qj.max())], "unit": "rad"}
@@ -441,9 +450,13 @@ def _where_it_acts(rec: Recording, res, effect: str, angles: np.ndarray) -> dict
     return where
 
 
-def _term_report(rec: Recording, res, effect: str, angles: np.ndarray) -> dict[str, Any] | None:
+def _term_report(
+    rec: Recording, res, effect: str, angles: np.ndarray, interval=None
+) -> dict[str, Any] | None:
     """`steps[].term`: a dictionary term's variable, function, coefficients with σ, its
-    description in words and where it acts (None for a library effect)."""
+    description in words and where it acts (None for a library effect); for a term of the
+    motion sign, the speed below which the joints count as at rest and its profile
+    interval (`interval`, [rad/s])."""
     t = term(effect)
     if t is None:
         return None
@@ -464,6 +477,17 @@ def _term_report(rec: Recording, res, effect: str, angles: np.ndarray) -> dict[s
     if t.harmonic:
         a, sa, phi, sp = amplitude_phase(values, cov)
         out.update(amplitude=a, amplitude_sigma=sa, phase_rad=phi, phase_sigma_rad=sp)
+    if t.motion:
+        d = res.motion_threshold
+        out["motion_threshold_rad_s"] = d
+        out["motion_threshold_interval_rad_s"] = None if interval is None else list(interval)
+        if interval is None:
+            span = ""
+        elif interval[0] == interval[1]:
+            span = " (Δχ² ≤ 1 within one step of the profile, 2^(1/16))"
+        else:
+            span = f" (Δχ² ≤ 1: {interval[0]:.3g} to {interval[1]:.3g})"
+        out["words"] += f"; at rest below {d:.3g} rad/s{span}"
     return out
 
 
@@ -472,6 +496,40 @@ def _without(res, effect: str):
     eff = dict(res.effects)
     eff[effect] = np.zeros_like(np.asarray(eff[effect], float)).tolist()
     return dataclasses.replace(res, effects=eff)
+
+
+def _profile_motion_threshold(rec, named, current, weights, space):
+    """The speed [rad/s] below which a joint counts as at rest (the deadband of a
+    velocity-sign term), by profile likelihood: the model `named` refitted (from
+    `current`) at thresholds a factor 2 apart from `MOTION_THRESHOLD` to 0.5 rad/s, then
+    2^¼ and 2^(1/16) apart around the best (23 refits). The threshold is data
+    (`motion_sign`), so the refits share one compilation. Returns (threshold, the refit
+    there, the interval of thresholds within Δχ² ≤ 1 of it)."""
+    from ..estimate.calibration import fit
+
+    chi2: dict[float, float] = {}
+
+    def refit(d: float, robust_sigma: bool = False):
+        return fit(
+            rec,
+            estimate=tuple(named),
+            weights=weights,
+            init=current,
+            space=space,
+            robust_sigma=robust_sigma,
+            motion_threshold=d,
+        )
+
+    for d in MOTION_THRESHOLD * 2.0 ** np.arange(10):
+        chi2[float(d)] = refit(float(d)).chi2
+    for step in (1 / 4, 1 / 16):
+        centre = min(chi2, key=chi2.get)
+        for d in centre * 2.0 ** (np.arange(-3, 4) * step):
+            if float(d) not in chi2:
+                chi2[float(d)] = refit(float(d)).chi2
+    best = min(chi2, key=chi2.get)
+    inside = [d for d in chi2 if chi2[d] - chi2[best] <= 1.0]
+    return best, refit(best, robust_sigma=True), (min(inside), max(inside))
 
 
 def _simpler_model(rec, named, current, offered, weights, space, n_obs):
@@ -632,6 +690,14 @@ def discover(
             stopped = "nothing_qualifies"
             break
         best, current, score = accepted
+        interval = None
+        if term(best) is not None and term(best).motion:
+            say(f"deadband of {best}: profile of the motion threshold")
+            threshold, current, interval = _profile_motion_threshold(
+                rec, named + [best], current, weights, space
+            )
+            heldout_gap = heldout.gap((*named, best), current)
+            score.update(heldout_gap_after_m=heldout_gap)
         # candidates the score test cannot tell from the named one
         alternatives = tuple(
             c
@@ -673,7 +739,7 @@ def discover(
                 gaps[-1],
                 score,
                 scores,
-                _term_report(rec, current, best, angles),
+                _term_report(rec, current, best, angles, interval),
                 tuple(replaces),
                 alternatives,
             )

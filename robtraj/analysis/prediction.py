@@ -121,7 +121,7 @@ def predicted_tool_poses(rec: Recording, calib, time: np.ndarray) -> jaxlie.SE3:
         q,
         jnp.asarray(direction),
         jnp.asarray(np.nan_to_num(drift)),
-        jnp.asarray(motion_sign(log_t, joints, t)),
+        jnp.asarray(motion_sign(log_t, joints, t, calib.motion_threshold)),
     )
 
 

@@ -66,6 +66,14 @@ def register(sub) -> argparse.ArgumentParser:
         metavar="N",
         help="solver steps per solve before giving up (default 50; exit 3 when reached)",
     )
+    p.add_argument(
+        "--motion-threshold",
+        type=float,
+        default=None,
+        metavar="RAD_S",
+        help="speed [rad/s] below which a joint counts as at rest for the velocity-sign "
+        "terms (default 0.001; `robtraj discrepancy` estimates it)",
+    )
     p.add_argument("--force", action="store_true", help="overwrite CALIB.json if it exists")
     p.set_defaults(func=run)
     return p
@@ -100,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
             max_iter=args.max_steps,
             progress=say,
             suggest=SUGGESTED_POSES,
+            motion_threshold=args.motion_threshold,
         )
     doc = res.to_json()
     text = json.dumps(doc, indent=1)

@@ -14,7 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
-from ..model import RobotModel, interpolate_joints, motion_direction, motion_sign, robot_from_log
+from ..model import (
+    MOTION_THRESHOLD,
+    RobotModel,
+    interpolate_joints,
+    motion_direction,
+    motion_sign,
+    robot_from_log,
+)
 from ..recording import Recording
 
 #: minimum number of tracker frames inside the robot log's time span
@@ -35,7 +42,8 @@ class CalibrationData:
     - `measured` `(n, m, 3)` LED positions in the camera frame [m], 0 where unseen.
     - `seen` `(n, m)` bool.
     - `direction` `(n, joints)` sign of each joint's motion (for `backlash`);
-      `moving` `(n, joints)` sign of each joint's velocity, 0 at rest (`motion_sign`).
+      `moving` `(n, joints)` sign of each joint's velocity, 0 slower than
+      `motion_threshold` [rad/s] (`motion_sign`).
     - `drift` `(n,)` drift variable of `thermal_drift`: camera temperature change [K]
       since the first frame, or minutes since the first frame without temperatures.
     - `log_time` `(k,)`, `joints` `(k, joints)`: the robot log (robot clock).
@@ -64,6 +72,7 @@ class CalibrationData:
     unseen_leds: tuple[int, ...]
     led_seen: np.ndarray
     n_recording_frames: int
+    motion_threshold: float = MOTION_THRESHOLD
 
     def joints_at(self, idx: np.ndarray, time_offset: float = 0.0) -> np.ndarray:
         """Logged joint angles `(len(idx), joints)` at frames `idx` (robot clock t + τ)."""
@@ -80,12 +89,17 @@ class CalibrationData:
 
 
 def prepare(
-    rec: Recording, *, time_offset: float = 0.0, constellation: np.ndarray | None = None
+    rec: Recording,
+    *,
+    time_offset: float = 0.0,
+    constellation: np.ndarray | None = None,
+    motion_threshold: float = MOTION_THRESHOLD,
 ) -> CalibrationData:
     """Check `rec` and build the `CalibrationData` (see there).
 
     `time_offset` [s] is the clock offset used for the backlash motion direction;
-    `constellation` `(tool LEDs, 3)` [m] replaces the nominal one as the reference.
+    `constellation` `(tool LEDs, 3)` [m] replaces the nominal one as the reference;
+    `motion_threshold` [rad/s] the speed below which a joint counts as at rest.
     """
     if rec.robot is None:
         raise UserError("the recording has no robot log (/robot): calibration needs joint angles")
@@ -164,7 +178,10 @@ def prepare(
         measured=pos,
         seen=seen,
         direction=np.asarray(direction, np.float64),
-        moving=np.asarray(motion_sign(log_time, joints, t[frames] + time_offset), np.float64),
+        moving=np.asarray(
+            motion_sign(log_time, joints, t[frames] + time_offset, motion_threshold), np.float64
+        ),
+        motion_threshold=float(motion_threshold),
         drift=drift,
         log_time=log_time,
         joints=joints,

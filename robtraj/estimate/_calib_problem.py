@@ -84,6 +84,9 @@ class BundleProblem(eqx.Module):
     free: tuple[str, ...] = eqx.field(static=True)
     kinematic: bool = eqx.field(static=True)
     rigid_leds: bool = eqx.field(static=True, default=False)
+    #: on the rigid path, the columns of the LED-level effects in `free` (at zero) are
+    #: taken too (the score test's normal equations); a fit that holds them skips them
+    led_columns: bool = eqx.field(static=True, default=False)
 
 
 def is_kinematic(name: str) -> bool:
@@ -323,11 +326,15 @@ def _skew(v: Array) -> Array:
 
 
 def _chunk_terms_rigid(g, p, problem, frames, per_frame=False):
-    """`_chunk_terms` for LEDs that move rigidly with the tool (no LED-level effect).
+    """`_chunk_terms` where the LEDs move rigidly with the tool (every LED-level effect
+    at zero; with `problem.led_columns` they still get their columns, else zeros).
 
     With ``y = T exp(ξ) p``: ``∂y/∂ξ = R [I, −[p]×]`` and ``∂y/∂p = R``, so the rotation
     cancels in every product and the per-frame 6×6 blocks are weighted moments of the
-    constellation. Same result as the forward-mode path, an order of magnitude faster.
+    constellation. An LED-level effect at zero moves no LED, so these stay exact; its
+    own column ``∂y/∂e`` (linear in e: one batched tangent of `led_positions`) is taken
+    to the tool frame by ``Rᵀ`` and enters through its products with the above. Same
+    result as the forward-mode path, an order of magnitude faster.
     """
     tool0, tg = _tool_jacobian(g, problem, frames)
     rot = jax.vmap(lambda t: t.rotation().as_matrix())(tool0)  # (C, 3, 3)
@@ -359,6 +366,29 @@ def _chunk_terms_rigid(g, p, problem, frames, per_frame=False):
     hpp = (w if per_frame else w.sum(0))[..., None, None] * eye
     bg = jnp.einsum("caq,ca->cq", tg, b_xi)
     bp = w[..., None] * u
+    led_cols = _led_effect_columns(problem) if problem.led_columns else []
+    if led_cols:
+        idx = jnp.asarray(led_cols)
+
+        def leds(gl):
+            eff = apply_effects(problem.effects, problem.free, g.at[idx].set(gl)[12:])
+            return led_positions(tool0, eff, p, problem.normals)
+
+        ke = jax.jacfwd(leds)(g[idx])  # (C, M, 3, L) camera frame
+        kt = jnp.einsum("cji,cmjl->cmil", rot, ke)  # tool frame
+        wk = w[..., None, None] * kt
+        h_exi = jnp.concatenate(
+            [wk.sum(1).transpose(0, 2, 1), -jnp.einsum("cmil,mij->clj", wk, _skew(p))], -1
+        )  # (C, L, 6): Σ_LEDs w Kᵀ [I, −[p]×]
+        h_eg = jnp.einsum(f"clx,cxq->{c}lq", h_exi, tg)
+        h_ee = jnp.einsum(f"cmil,cmik->{c}lk", wk, kt)
+        sel = jnp.zeros((len(led_cols), g.shape[0]), g.dtype)
+        sel = sel.at[jnp.arange(len(led_cols)), idx].set(1.0)
+        cross = jnp.einsum(f"lq,{c}lr->{c}qr", sel, h_eg)
+        hgg = hgg + cross + jnp.swapaxes(cross, -1, -2)
+        hgg = hgg + jnp.einsum(f"lq,{c}lk,kr->{c}qr", sel, h_ee, sel)
+        hgp = hgp + jnp.einsum(f"lq,cmil->{c}qmi", sel, wk)
+        bg = bg + jnp.einsum("lq,cmil,cmi->cq", sel, wk, u)
     return hgg, hgp, hpp, bg, bp, jnp.sum(w * jnp.sum(e * e, -1))
 
 
@@ -541,7 +571,7 @@ def probe_observations(probe, data: CalibrationData, tau: float) -> ProbeObserva
     frames = Frames(
         time=jnp.asarray(t),
         direction=jnp.asarray(motion_direction(data.log_time, data.joints, t + tau)),
-        moving=jnp.asarray(motion_sign(data.log_time, data.joints, t + tau)),
+        moving=jnp.asarray(motion_sign(data.log_time, data.joints, t + tau, data.motion_threshold)),
         drift=jnp.asarray(np.interp(t, data.time, data.drift)),
         measured=jnp.zeros((t.size, 0, 3)),
         sqrt_weight=jnp.zeros((t.size, 0)),

@@ -11,7 +11,7 @@ import jaxlie
 import numpy as np
 
 from .._errors import UserError
-from ..model import Effects
+from ..model import MOTION_THRESHOLD, Effects
 from ..recording import Pose
 
 
@@ -86,6 +86,8 @@ class CalibrationResult:
     #: per parameter, the clusters the robust σ effectively rests on
     #: (`robtraj.estimate.effective_clusters`; its relative error ≈ 1/√(2·G_eff))
     clusters_effective: np.ndarray | None = None
+    #: speed [rad/s] below which a joint counted as at rest (the velocity-sign terms)
+    motion_threshold: float = MOTION_THRESHOLD
 
     @property
     def time_offset(self) -> float:
@@ -135,6 +137,7 @@ class CalibrationResult:
                 "positions": np.asarray(self.constellation).tolist(),
             },
             "time_offset": self.time_offset,
+            "motion_threshold_rad_s": self.motion_threshold,
             "covariance": {
                 "parameters": list(self.parameter_names),
                 "matrix": np.asarray(self.covariance).tolist(),
@@ -226,6 +229,7 @@ class CalibrationResult:
                     np.asarray(robust["matrix"], float) if "matrix" in robust else None
                 ),
                 n_clusters=int(robust.get("clusters", 0)),
+                motion_threshold=float(d.get("motion_threshold_rad_s", MOTION_THRESHOLD)),
                 clusters_effective=(
                     None
                     if robust.get("effective_clusters") is None

@@ -59,6 +59,7 @@ from .._errors import UserError
 from ..model import (
     EFFECT_NAMES,
     LIBRARY,
+    MOTION_THRESHOLD,
     Effects,
     effect_component_names,
     known_effects,
@@ -218,6 +219,7 @@ def fit(
     space: Sequence[str] = (),
     hold: Sequence[str] = (),
     robust_sigma: bool = True,
+    motion_threshold: float | None = None,
 ) -> CalibrationResult:
     """Bundle-calibrate `recording` (see the module docstring).
 
@@ -250,6 +252,10 @@ def fit(
     - `hold`: parameter groups held at their start values (`init`'s): any of
       ``"camera_from_base"``, ``"flange_from_tool"``, ``"constellation"`` (to refit only
       the rigid transforms of another recording under a calibrated model).
+    - `motion_threshold`: speed [rad/s] below which a joint counts as at rest for the
+      dictionary's velocity-sign terms (default: `init`'s, else
+      `robtraj.model.MOTION_THRESHOLD`); data, not a parameter: fits that differ only
+      in it share one compilation.
 
     **Returns:** a `CalibrationResult` (`converged` False, with the reason in
     `convergence`, when a solve stopped before its criterion held). Raises `UserError`
@@ -272,7 +278,9 @@ def fit(
     bad = [h for h in hold if h not in HOLDABLE]
     if bad:
         raise UserError(f"cannot hold {', '.join(bad)} (choose from {', '.join(HOLDABLE)})")
-    st = _setup(recording, estimate, init, weights, chunk, say, space=space)
+    st = _setup(
+        recording, estimate, init, weights, chunk, say, space=space, motion=motion_threshold
+    )
     data, q, free, w_user = st.data, st.q, st.free, st.w_user
     held = np.array([n.split(".", 1)[0] in hold for n in st.names_theta])
     if not np.any(st.has_column & st.in_model & ~held):
@@ -431,6 +439,7 @@ def fit(
         noise_sigma_m=float(np.sqrt(np.mean(sq[used]) / 3.0)),
         gauge=st.gauge,
         gauge_reference=np.asarray(data.reference),
+        motion_threshold=data.motion_threshold,
         identifiability=ident,
         iterations=sum(x.steps for x in sols),
         converged=converged,
@@ -563,7 +572,7 @@ def score_effects(
     _check_names(candidates)
     w = current.weights if weights is None else weights
     space = library_space(candidates, current.estimated, tuple(current.effects))
-    st = _setup(recording, space, current, w, chunk, lambda _m: None)
+    st = _setup(recording, space, current, w, chunk, lambda _m: None, start_only=True)
     H = st.h0
     b = np.asarray(st.normal0[1])
     fixed_now = set(current.identifiability.get("fixed_parameters", []))
@@ -617,7 +626,21 @@ def _check_names(names) -> None:
         )
 
 
-def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()) -> _Setup:
+def _setup(
+    recording,
+    estimate,
+    init,
+    weights,
+    chunk,
+    say,
+    normal=True,
+    space=(),
+    motion=None,
+    start_only=False,
+) -> _Setup:
+    """Observations, closed-form start and problem of one fit. `start_only`: the normal
+    equations are wanted at the start alone (no step is taken): LED-level effects at
+    zero then take the rigid path even when free."""
     estimate = tuple(dict.fromkeys(estimate))
     _check_names((*estimate, *space))
     order = known_effects()
@@ -631,7 +654,13 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()
         reference = _per_tool_led(recording, init.led_ids, init.gauge_reference)
         start = _per_tool_led(recording, init.led_ids, init.constellation)
     tau0 = 0.0 if init is None else init.time_offset
-    data = prepare(recording, time_offset=tau0, constellation=reference)
+    if motion is None:
+        motion = MOTION_THRESHOLD if init is None else init.motion_threshold
+    if not (np.isfinite(motion) and motion > 0):
+        raise UserError(f"the motion threshold must be a positive speed [rad/s], not {motion}")
+    data = prepare(
+        recording, time_offset=tau0, constellation=reference, motion_threshold=float(motion)
+    )
     if start is not None:
         col = {int(i): k for k, i in enumerate(recording.tool.led_ids)}
         start = start[[col[int(i)] for i in data.led_ids]]
@@ -676,13 +705,15 @@ def _setup(recording, estimate, init, weights, chunk, say, normal=True, space=()
         joints=jnp.asarray(data.joints),
         free=free,
         kinematic=kinematic,
-        # LED-level effects held at zero have zero columns: the rigid path serves
-        rigid_leds=not any(cp.is_led_level(n) for n in estimated)
+        # LED-level effects at zero move no LED: the rigid path serves while none is
+        # estimated (a step would move them), or for the normal equations at the start
+        rigid_leds=(start_only or not any(cp.is_led_level(n) for n in estimated))
         and all(
             float(np.max(np.abs(effects0.get(n)))) == 0.0
             for n in (*cp.LED_EFFECTS, *effects0.terms)
             if cp.is_led_level(n)
         ),
+        led_columns=start_only,
     )
     chunks = cp.chunked_frames(data, np.sqrt(w_user), cp.chunk_size(data.n_frames, chunk))
     # the observations live on in `chunks`; the frame-major copy is not needed again

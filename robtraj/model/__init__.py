@@ -41,6 +41,7 @@ from ._kinematics import (
     ur10,
 )
 from ._measurement import (
+    MOTION_THRESHOLD,
     camera_from_base_at,
     dh_corrections,
     effective_joints,
@@ -58,6 +59,7 @@ __all__ = [
     "BUILTIN_ROBOTS",
     "CameraModel",
     "EFFECT_NAMES",
+    "MOTION_THRESHOLD",
     "HARMONICS",
     "Effects",
     "LIBRARY",

@@ -53,6 +53,9 @@ class Term:
       (``"sin·sin(2·q1) + cos·cos(2·q1)"``); `frame_variable`: the variable of the
       discrepancy workflow's localisation the residual is plotted against.
     - `harmonic`: cycles per revolution for a harmonic (reported as amplitude and phase).
+    - `motion`: the term acts through `s`; the discrepancy search then also estimates the
+      speed below which a joint counts as at rest (a deadband, by profiling
+      `fit(motion_threshold=...)`).
     """
 
     name: str
@@ -65,6 +68,7 @@ class Term:
     frame_variable: str
     joint: int = -1
     harmonic: int = 0
+    motion: bool = False
 
     @property
     def size(self) -> int:
@@ -101,6 +105,7 @@ def _velocity_sign(j: int) -> Term:
         function=f"value·sign(q̇{j + 1}) (0 at rest)",
         frame_variable=f"joint {j + 1} velocity",
         joint=j,
+        motion=True,
     )
 
 
@@ -188,6 +193,7 @@ def register_effect(
     variable: str = "",
     function: str = "",
     frame_variable: str | None = None,
+    motion: bool = False,
 ) -> Term:
     """Add a term of the user's to the dictionary (the discrepancy search then tries it).
 
@@ -198,8 +204,9 @@ def register_effect(
     moves each LED observation by ``fn(y, n, θ) @ c`` [m] (camera frame), with `y`
     `(..., 3)` the LED position, `n` `(..., 3)` its emission axis, `θ` `(...)` its
     emission angle, returning `(..., 3, k)`. `fn` must be a JAX function (it is
-    differentiated and compiled). Returns the `Term`; a name already taken raises
-    `UserError`.
+    differentiated and compiled). `motion`: a joint term that acts through `s` (the
+    discrepancy search then also estimates the speed below which a joint counts as at
+    rest). Returns the `Term`; a name already taken raises `UserError`.
     """
     if not name.isidentifier():
         raise UserError(f"effect name {name!r} must be an identifier")
@@ -209,6 +216,8 @@ def register_effect(
         raise UserError(f"kind must be 'joint' or 'led', got {kind!r}")
     if kind == "joint" and (joint is None or joint < 1):
         raise UserError("a joint term needs joint=N (1-based)")
+    if motion and kind != "joint":
+        raise UserError("only a joint term acts through the velocity signs (motion=True)")
     comps = tuple(components)
     if not comps:
         raise UserError("a term needs at least one coefficient")
@@ -224,6 +233,7 @@ def register_effect(
         frame_variable=frame_variable
         or (f"joint {j + 1}" if kind == "joint" else "emission angle"),
         joint=j,
+        motion=bool(motion),
     )
     _REGISTRY[name] = term
     _USER.append(name)

@@ -70,11 +70,17 @@ def motion_direction(
     return out[k]
 
 
+#: speed [rad/s] below which a joint counts as at rest for `motion_sign` (a calibration
+#: may carry another, `CalibrationResult.motion_threshold`)
+MOTION_THRESHOLD = 1e-3
+
+
 def motion_sign(
-    log_time: np.ndarray, joints: np.ndarray, t: np.ndarray, threshold: float = 1e-3
+    log_time: np.ndarray, joints: np.ndarray, t: np.ndarray, threshold: float = MOTION_THRESHOLD
 ) -> np.ndarray:
     """Sign (−1, 0, +1) of each joint's velocity at times `t`: 0 where the joint is slower
-    than `threshold` [rad/s] (the dictionary's velocity-sign terms act only in motion).
+    than `threshold` [rad/s] (the dictionary's velocity-sign terms act only in motion;
+    the threshold is data, not a parameter: changing it recompiles nothing).
     numpy (data, not a parameter)."""
     v = np.gradient(joints, log_time, axis=0)
     sign = np.where(np.abs(v) > threshold, np.sign(v), 0.0)

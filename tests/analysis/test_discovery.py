@@ -54,11 +54,13 @@ def _check_value(res, effect, physics):
         dphi = np.angle(np.exp(1j * (phi - physics.phase)))
         assert abs(dphi) < 3 * sp, (phi, sp, physics.phase)
     elif effect.endswith("velocity_sign"):
-        # the dictionary's term acts from 1 mrad/s, the physics beyond its 20 mrad/s
-        # deadband: in the frames between, the term predicts an error the arm does not
-        # have, which biases the fit low by about the share of such frames (≲ 10 %)
-        v = p["value"]["value"]
-        assert 0.85 * physics.amplitude < v < physics.amplitude + 3 * p["value"]["sigma"], v
+        # the deadband is profiled down to steps of 2^(1/16): the physics' deadband lies in
+        # the reported Δχ² ≤ 1 interval widened by a step, and the value is then unbiased
+        v, s = p["value"]["value"], p["value"]["sigma"]
+        assert abs(v - physics.amplitude) < 3 * s, (v, s)
+        lo, hi = step.term["motion_threshold_interval_rad_s"]
+        assert lo <= step.term["motion_threshold_rad_s"] <= hi
+        assert lo * 2 ** (-1 / 16) <= physics.deadband <= hi * 2 ** (1 / 16), (lo, hi)
     else:
         v, s = p["angle"]["value"], p["angle"]["sigma"]
         assert abs(v - physics.amplitude) < 3 * s, (v, s)

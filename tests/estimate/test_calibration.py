@@ -19,7 +19,7 @@ from robtraj.estimate.calibration import (
     fit,
     robot_world_hand_eye,
 )
-from robtraj.model import EFFECT_NAMES, Effects
+from robtraj.model import EFFECT_NAMES, MOTION_THRESHOLD, Effects
 from robtraj.recording import Pose
 from robtraj.sim import simulate
 
@@ -209,6 +209,25 @@ def test_robust_loss_reports_outlier_frames(fits):
     assert np.all(np.abs(e) < 3 * s)
 
 
+def test_the_motion_threshold_is_where_the_velocity_sign_starts(fits):
+    """`moving` is the sign of each joint's velocity (central differences of the log,
+    held to the frame's log sample) and 0 below the threshold [rad/s], computed here
+    directly in numpy."""
+    rec, _ = fits[0]
+    lt, lj = np.asarray(rec.robot.time), np.asarray(rec.robot.joints)
+    v = np.gradient(lj, lt, axis=0)
+    moving = {}
+    for d in (MOTION_THRESHOLD, 0.05):
+        data = prepare(rec, motion_threshold=d)
+        k = np.clip(np.searchsorted(lt, data.time, side="right") - 1, 0, lt.size - 1)
+        want = np.sign(v[k]) * (np.abs(v[k]) > d)
+        np.testing.assert_array_equal(data.moving, want)
+        assert data.motion_threshold == d
+        moving[d] = np.abs(data.moving).sum()
+    # the recording has joint speeds between the two thresholds
+    assert moving[0.05] < moving[MOTION_THRESHOLD]
+
+
 def test_json_round_trip(fits, tmp_path):
     _, res = fits[0]
     doc = json.loads(json.dumps(res.to_json()))
@@ -223,6 +242,7 @@ def test_json_round_trip(fits, tmp_path):
     np.testing.assert_allclose(back.constellation, res.constellation)
     np.testing.assert_allclose(back.covariance, res.covariance)
     assert back.parameter_names == res.parameter_names and back.gauge == res.gauge
+    assert back.motion_threshold == res.motion_threshold == MOTION_THRESHOLD
     with pytest.raises(UserError):
         CalibrationResult.from_json({"camera_from_base": {}})
 

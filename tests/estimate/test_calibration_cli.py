@@ -46,9 +46,10 @@ def test_bad_input_is_one_line_and_exit_2(recording, tmp_path, capsys):
     out = tmp_path / "c.json"
     assert main(["calibrate", str(tmp_path / "missing.h5"), "-o", str(out)]) == 2
     assert main(["calibrate", str(recording), "-o", str(out), "--estimate", "warp_drive"]) == 2
+    assert main(["calibrate", str(recording), "-o", str(out), "--motion-threshold", "-1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all(line.startswith("robtraj: error:") for line in err)
-    assert "warp_drive" in err[1]
+    assert len(err) == 3 and all(line.startswith("robtraj: error:") for line in err)
+    assert "warp_drive" in err[1] and "motion threshold" in err[2]
     assert not out.exists()
 
 

@@ -114,20 +114,27 @@ def test_identifiability_names_an_exact_null_direction_and_covariance_excludes_i
     np.testing.assert_allclose(cov[:3, :3], 2.0 * np.linalg.inv(h[:3, :3]), rtol=1e-8)
 
 
-@pytest.mark.parametrize("terms", ["library", "dictionary"])
+@pytest.mark.parametrize(
+    "terms",
+    [pytest.param("library", marks=pytest.mark.exhaustive), "dictionary", "rigid LEDs"],
+)
 def test_bundle_normal_equations_are_those_of_the_pure_residuals(terms):
     """Chunk-accumulated ``JᵀJ``, ``Jᵀr`` at a θ away from the current values (where the
     SE3 corrections need their right Jacobian), with every effect free and non-zero (the
-    library's, or every term of the dictionary as well), equal those of `residuals`
-    through `jax.jacfwd` over all frames at once."""
+    library's and every term of the dictionary; the library alone runs on demand), equal
+    those of `residuals` through `jax.jacfwd` over all frames at once. "rigid LEDs": the
+    LED-level effects at zero, whose columns the rigid path takes in closed form."""
     from robtraj.estimate import calibration as cal
+    from robtraj.estimate._calib_problem import is_led_level
     from robtraj.model import EFFECT_NAMES, dictionary
     from robtraj.sim import simulate
 
     rec = simulate("paper", seed=0, duration=8.0, rate=25.0)
     # every effect free: the closed-form effect columns of the tool pose are checked too
-    names = EFFECT_NAMES + (dictionary(6) if terms == "dictionary" else ())
-    st = cal._setup(rec, names, None, None, 16, lambda _m: None)
+    names = EFFECT_NAMES + (dictionary(6) if terms != "library" else ())
+    rigid = terms == "rigid LEDs"
+    st = cal._setup(rec, names, None, None, 16, lambda _m: None, start_only=rigid)
+    assert st.bundle.problem.rigid_leds == rigid
     rng = np.random.default_rng(3)
     theta = np.zeros(len(st.names_theta))
     theta[:12] = rng.normal(0, 2e-3, 12)
@@ -137,6 +144,10 @@ def test_bundle_normal_equations_are_those_of_the_pure_residuals(terms):
     squared = [i for i, n in enumerate(st.names_theta) if "torque_squared" in n]
     theta[squared] = rng.normal(0, 1e-8, len(squared))  # [rad/(N·m)²]
     theta[st.q :] = rng.normal(0, 1e-4, theta.size - st.q) * st.has_column[st.q :]
+    if rigid:
+        led = [i for i, n in enumerate(st.names_theta[: st.q]) if is_led_level(cal._effect_of(n))]
+        assert len(led) >= 8  # led_angle_bias, tracker_scale and the dictionary's LED terms
+        theta[led] = 0.0
     theta = jnp.asarray(theta)
     h, b, c = normal_at(cal.bundle_normal, theta, st.bundle)  # compiled by `_setup`
     r = eqx.filter_jit(cal.residuals)(theta, st.bundle)

@@ -17,6 +17,9 @@ from robtraj.model import (
     led_positions,
     motion_sign,
     parse_effect,
+    register_effect,
+    term,
+    unregister_effect,
 )
 
 
@@ -75,6 +78,21 @@ def test_motion_sign_is_zero_at_rest():
     q = np.stack([np.where(t < 1, t, 1.0), -np.where(t < 1, 0.0, t - 1)], 1)
     s = motion_sign(t, q, np.array([0.5, 1.5]))
     np.testing.assert_array_equal(s, [[1.0, 0.0], [0.0, -1.0]])
+
+
+def test_a_registered_term_of_the_velocity_signs_is_marked_for_the_deadband_profile():
+    t = register_effect(
+        "joint3_stick_slip", lambda q, s, tau: s[2:3], ("value",), joint=3, motion=True
+    )
+    try:
+        assert t.motion and term("joint3_stick_slip").motion and not term("joint3_harmonic1").motion
+        assert term("joint3_velocity_sign").motion
+        with pytest.raises(UserError, match="only a joint term"):
+            register_effect(
+                "led_wobble", lambda y, n, th: y[..., None], ("v",), kind="led", motion=True
+            )
+    finally:
+        unregister_effect("joint3_stick_slip")
 
 
 def test_terms_round_trip_and_bad_values_are_user_errors():
