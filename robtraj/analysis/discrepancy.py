@@ -693,7 +693,7 @@ def discover(
         interval = None
         if term(best) is not None and term(best).motion:
             say(f"deadband of {best}: profile of the motion threshold")
-            threshold, current, interval = _profile_motion_threshold(
+            _, current, interval = _profile_motion_threshold(
                 rec, named + [best], current, weights, space
             )
             heldout_gap = heldout.gap((*named, best), current)

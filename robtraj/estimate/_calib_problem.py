@@ -380,15 +380,12 @@ def _chunk_terms_rigid(g, p, problem, frames, per_frame=False):
         h_exi = jnp.concatenate(
             [wk.sum(1).transpose(0, 2, 1), -jnp.einsum("cmil,mij->clj", wk, _skew(p))], -1
         )  # (C, L, 6): Σ_LEDs w Kᵀ [I, −[p]×]
-        h_eg = jnp.einsum(f"clx,cxq->{c}lq", h_exi, tg)
+        h_eg = jnp.einsum(f"clx,cxq->{c}lq", h_exi, tg)  # zero in the LED-level columns
         h_ee = jnp.einsum(f"cmil,cmik->{c}lk", wk, kt)
-        sel = jnp.zeros((len(led_cols), g.shape[0]), g.dtype)
-        sel = sel.at[jnp.arange(len(led_cols)), idx].set(1.0)
-        cross = jnp.einsum(f"lq,{c}lr->{c}qr", sel, h_eg)
-        hgg = hgg + cross + jnp.swapaxes(cross, -1, -2)
-        hgg = hgg + jnp.einsum(f"lq,{c}lk,kr->{c}qr", sel, h_ee, sel)
-        hgp = hgp + jnp.einsum(f"lq,cmil->{c}qmi", sel, wk)
-        bg = bg + jnp.einsum("lq,cmil,cmi->cq", sel, wk, u)
+        hgg = hgg.at[..., idx, :].add(h_eg).at[..., :, idx].add(jnp.swapaxes(h_eg, -1, -2))
+        hgg = hgg.at[..., idx[:, None], idx[None, :]].add(h_ee)
+        hgp = hgp.at[..., idx, :, :].add(jnp.einsum(f"cmil->{c}lmi", wk))
+        bg = bg.at[:, idx].add(jnp.einsum("cmil,cmi->cl", wk, u))
     return hgg, hgp, hpp, bg, bp, jnp.sum(w * jnp.sum(e * e, -1))
 
 
