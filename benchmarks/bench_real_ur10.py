@@ -53,7 +53,8 @@ def _realigned_errors(pred: np.ndarray, meas: np.ndarray) -> np.ndarray:
         jnp.asarray(pred)[None], jnp.asarray(meas)[None], jnp.ones((1, len(pred)))
     )
     rot = Rotation.from_quat(np.asarray(fit.quaternion_wxyz[0]), scalar_first=True)
-    return np.linalg.norm(rot.apply(pred) + np.asarray(fit.position[0]) - meas, axis=1)
+    # a copy: scipy's Rotation.apply refuses read-only arrays (NumPy views of JAX arrays)
+    return np.linalg.norm(rot.apply(np.array(pred)) + np.asarray(fit.position[0]) - meas, axis=1)
 
 
 class _Nystrom:

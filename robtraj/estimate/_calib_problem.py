@@ -304,15 +304,27 @@ def _chunk_terms(g, p, problem, frames, per_frame=False):
     r = sw * (frames.measured - pred)
     kw = sw[..., None] * k_loc
     jp = sw[..., None] * jac_p
-    c = "c" if per_frame else ""
+    # products per frame (and per LED) over the 3 coordinates or the local coordinates
+    # written out as sums: batches of tiny matrix products are slow on CPU
     a_loc = jnp.einsum("cmik,cmil->ckl", kw, kw)
-    n_loc = jnp.einsum("cmik,cmia->cmka", kw, jp)
+    n_loc = sum(kw[:, :, i, :, None] * jp[:, :, i, None, :] for i in range(3))  # (C,M,k,3)
+    k_r = sum(kw[:, :, i, :] * r[:, :, i, None] for i in range(3)).sum(1)  # (C, k)
+    nk = gmap.shape[1]
+    if per_frame:
+        a_g = sum(a_loc[:, :, l, None] * gmap[:, None, l, :] for l in range(nk))  # (C, k, q)
+        hgg = sum(gmap[:, k, :, None] * a_g[:, k, None, :] for k in range(nk))
+        hgp = sum(gmap[:, k, :, None, None] * n_loc[:, None, :, k, :] for k in range(nk))
+        hpp = sum(jp[:, :, i, :, None] * jp[:, :, i, None, :] for i in range(3))
+    else:
+        hgg = jnp.einsum("ckq,ckl,clr->qr", gmap, a_loc, gmap)
+        hgp = jnp.einsum("ckq,cmka->qma", gmap, n_loc)
+        hpp = jnp.einsum("cmia,cmib->mab", jp, jp)
     return (
-        jnp.einsum(f"ckq,ckl,clr->{c}qr", gmap, a_loc, gmap),
-        jnp.einsum(f"ckq,cmka->{c}qma", gmap, n_loc),
-        jnp.einsum(f"cmia,cmib->{c}mab", jp, jp),
-        jnp.einsum("ckq,ck->cq", gmap, jnp.einsum("cmik,cmi->ck", kw, r)),
-        jnp.einsum("cmia,cmi->cma", jp, r),
+        hgg,
+        hgp,
+        hpp,
+        sum(gmap[:, k, :] * k_r[:, k, None] for k in range(nk)),
+        sum(jp[:, :, i, :] * r[:, :, i, None] for i in range(3)),
         jnp.sum(r * r),
     )
 
@@ -359,12 +371,19 @@ def _chunk_terms_rigid(g, p, problem, frames, per_frame=False):
         [jnp.einsum("cm,cmi->ci", w, u), jnp.einsum("cm,cmi->ci", w, jnp.cross(p[None], u))], -1
     )
     c = "c" if per_frame else ""
-    hgg = jnp.einsum(f"caq,cab,cbr->{c}qr", tg, a, tg)
-    kk = jnp.einsum(f"cm,caq->{c}maq", w, tg)  # (M, 6, q)
     blk = jnp.concatenate([jnp.broadcast_to(eye, p.shape[:1] + (3, 3)), _skew(p)], -2)  # (M,6,3)
-    hgp = jnp.einsum(f"{c}maq,mab->{c}qmb", kk, blk)
+    if per_frame:
+        # per frame, as sums over the six tangent entries written out: batches of tiny
+        # matrix products are slow on CPU
+        a_tg = sum(a[:, :, k, None] * tg[:, None, k, :] for k in range(6))  # (C, 6, q)
+        hgg = sum(tg[:, k, :, None] * a_tg[:, k, None, :] for k in range(6))
+        tg_blk = sum(tg[:, k, :, None, None] * blk[None, None, :, k, :] for k in range(6))
+        hgp = w[:, None, :, None] * tg_blk  # (C, q, M, 3)
+    else:
+        hgg = jnp.einsum("caq,cab,cbr->qr", tg, a, tg)
+        hgp = jnp.einsum("maq,mab->qmb", jnp.einsum("cm,caq->maq", w, tg), blk)
     hpp = (w if per_frame else w.sum(0))[..., None, None] * eye
-    bg = jnp.einsum("caq,ca->cq", tg, b_xi)
+    bg = sum(tg[:, k, :] * b_xi[:, k, None] for k in range(6))  # (C, q)
     bp = w[..., None] * u
     led_cols = _led_effect_columns(problem) if problem.led_columns else []
     if led_cols:

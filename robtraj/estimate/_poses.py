@@ -9,6 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
+import jaxlie
 import numpy as np
 
 from .._errors import UserError
@@ -140,13 +141,32 @@ def chunked_led_variances(
 def led_emission_angles(position, quaternion_wxyz, constellation, normals):
     """Emission angle [rad] `(frames, leds)` of each LED toward the camera at the origin of
     the camera frame, from tool poses and the constellation/normals in the tool frame."""
-    r = _quat_matrix(np.nan_to_num(quaternion_wxyz))
-    # (frames, 3, leds): the LED's direction to the camera (unnormalised; atan2 of the
-    # cross and dot products needs no unit length) and its normal
-    x, y, z = np.moveaxis(-(r @ np.asarray(constellation).T) - position[:, :, None], 1, 0)
-    u, v, w = np.moveaxis(r @ np.asarray(normals).T, 1, 0)
-    cross = np.sqrt((y * w - z * v) ** 2 + (z * u - x * w) ** 2 + (x * v - y * u) ** 2)
-    return np.arctan2(cross, x * u + y * v + z * w)
+    return np.asarray(
+        _emission_angles(
+            jnp.asarray(position),
+            jnp.asarray(np.nan_to_num(quaternion_wxyz)),
+            jnp.asarray(constellation, jnp.float64),
+            jnp.asarray(normals, jnp.float64),
+        )
+    )
+
+
+@jax.jit
+def _emission_angles(position, quaternion_wxyz, constellation, normals):
+    # component by component, `(frames, leds)` each: XLA fuses it into one loop, where
+    # reductions over axes of length 3 are slow on CPU
+    r = jax.vmap(lambda q: jaxlie.SO3(q).as_matrix())(quaternion_wxyz)
+
+    def rotate(v):
+        return [sum(r[:, i, c, None] * v[None, :, c] for c in range(3)) for i in range(3)]
+
+    p = rotate(constellation)
+    # the LED's direction to the camera (unnormalised: atan2 of the cross and dot
+    # products needs no unit length) and its normal
+    x, y, z = (-(p[i] + position[:, i, None]) for i in range(3))
+    u, v, w = rotate(normals)
+    cross = jnp.sqrt((y * w - z * v) ** 2 + (z * u - x * w) ** 2 + (x * v - y * u) ** 2)
+    return jnp.arctan2(cross, x * u + y * v + z * w)
 
 
 def _select(rec: Recording, leds, reference_leds):

@@ -95,45 +95,37 @@ def robot_from_log(model: str | None, dh: np.ndarray | None) -> RobotModel:
     return BUILTIN_ROBOTS[model]()
 
 
-def _dh_matrix(d, a, alpha, theta, beta):
-    """``Rz(θ) · Tz(d) · Tx(a) · Rx(α) · Ry(β)`` in closed form."""
-    ct, st, ca, sa = jnp.cos(theta), jnp.sin(theta), jnp.cos(alpha), jnp.sin(alpha)
-    cb, sb = jnp.cos(beta), jnp.sin(beta)
-    z, o = jnp.zeros_like(theta), jnp.ones_like(theta)
-    return jnp.stack(
-        [
-            jnp.stack([ct * cb - st * sa * sb, -st * ca, ct * sb + st * sa * cb, a * ct]),
-            jnp.stack([st * cb + ct * sa * sb, ct * ca, st * sb - ct * sa * cb, a * st]),
-            jnp.stack([-ca * sb, sa, ca * cb, d]),
-            jnp.stack([z, z, z, o]),
-        ]
-    )
-
-
-def _compose(a: Float[Array, "... 4 4"], b: Float[Array, "... 4 4"]) -> Float[Array, "... 4 4"]:
-    # elementwise products and a sum: under vmap XLA fuses it, where a batch of tiny
-    # matmuls is slow on CPU
-    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
-
-
 def joint_frames(
     dh: Float[Array, "joints 4"],
     q: Float[Array, " joints"],
     tilt: Float[Array, " joints"] | None = None,
 ) -> Float[Array, "n 4 4"]:
-    """Homogeneous transforms base←frame_i for i = 0 … joints (frame 0 is the base).
+    """Homogeneous transforms base←frame_i for i = 0 … joints (frame 0 is the base):
+    frame i = frame i−1 · Rz(qᵢ + θ₀ᵢ) · Tz(dᵢ) · Tx(aᵢ) · Rx(αᵢ) · Ry(βᵢ).
 
-    `tilt` [rad]: Hayati's turn of each frame about its own y axis (zero if None)."""
-    tilt = jnp.zeros_like(q) if tilt is None else tilt.astype(q.dtype)
+    `tilt` [rad]: Hayati's turn β of each frame about its own y axis (zero if None).
+    Each step turns the frame's axes as 3-vectors: under `vmap` a batch of 4×4 matrix
+    products (tiny reductions) is slow on CPU."""
+    dh = dh.astype(q.dtype)
+    tilt = jnp.zeros_like(dh[:, 0]) if tilt is None else tilt.astype(q.dtype)
+    theta, alpha = q + dh[:, 3], dh[:, 2]
+    trig = [jnp.cos(theta), jnp.sin(theta), jnp.cos(alpha), jnp.sin(alpha)]
+    rows = jnp.stack([dh[:, 0], dh[:, 1], *trig, jnp.cos(tilt), jnp.sin(tilt)], -1)
 
-    def step(t, row_q):
-        row, qi, bi = row_q
-        t = _compose(t, _dh_matrix(row[0], row[1], row[2], qi + row[3], bi))
-        return t, t
+    def step(frame, row):
+        x, y, z, o = frame
+        d, a, ct, st, ca, sa, cb, sb = row
+        xt, yt = x * ct + y * st, y * ct - x * st  # · Rz(θ)
+        o = o + d * z + a * xt  # · Tz(d) Tx(a)
+        y, za = yt * ca + z * sa, z * ca - yt * sa  # · Rx(α)
+        x, z = xt * cb - za * sb, xt * sb + za * cb  # · Ry(β)
+        return (x, y, z, o), jnp.stack([x, y, z, o], -1)
 
     eye = jnp.eye(4, dtype=q.dtype)
-    _, frames = jax.lax.scan(step, eye, (dh.astype(q.dtype), q, tilt))
-    return jnp.concatenate([eye[None], frames], axis=0)
+    first = (eye[:3, 0], eye[:3, 1], eye[:3, 2], eye[:3, 3])
+    _, frames = jax.lax.scan(step, first, rows)
+    bottom = jnp.broadcast_to(eye[3:], (frames.shape[0], 1, 4))
+    return jnp.concatenate([eye[None], jnp.concatenate([frames, bottom], 1)], axis=0)
 
 
 def forward_kinematics(

@@ -13,6 +13,7 @@ from robtraj.model import (
     forward_kinematics,
     gravity_torque,
     inverse_kinematics,
+    joint_frames,
     redundant_link_parameters,
     ur10,
 )
@@ -70,6 +71,23 @@ def test_geometric_effects_match_numpy_dh_product():
     for q in rng.uniform(-np.pi, np.pi, size=(20, 6)):
         want = numpy_fk(dh, q, 0.0, np.asarray(eff.link_twist)[:, 1])
         np.testing.assert_allclose(np.asarray(fk(jnp.asarray(q))), want, rtol=0, atol=1e-12)
+
+
+def test_every_joint_frame_matches_numpy_dh_product_in_a_batch():
+    """`joint_frames` under `vmap` (as the estimation runs it, with tilts): frame i is the
+    numpy product of the first i corrected DH matrices."""
+    robot = abb_irb2400_16()
+    rng = np.random.default_rng(2)
+    dh = np.asarray(robot.dh) + rng.normal(0, 1e-3, (6, 4))
+    tilt = rng.normal(0, 1e-2, 6)
+    q = rng.uniform(-np.pi, np.pi, size=(64, 6))
+    kernel = jax.jit(jax.vmap(lambda a: joint_frames(jnp.asarray(dh), a, jnp.asarray(tilt))))
+    got = np.asarray(kernel(jnp.asarray(q)))
+    assert got.shape == (64, 7, 4, 4)
+    for frames, qq in zip(got, q):
+        for i in range(7):
+            want = numpy_fk(dh[:i], qq[:i], 0.0, tilt[:i])
+            np.testing.assert_allclose(frames[i], want, rtol=0, atol=1e-12)
 
 
 def test_abb_zero_pose_matches_datasheet():
