@@ -48,7 +48,8 @@ def enable_compilation_cache() -> Path | None:
     if not os.access(path, os.W_OK):
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
-    # cache every kernel that took noticeable time to compile, whatever its size
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    # cache every kernel, however quick to compile: a calibration compiles some seventy
+    # small ones (tens of ms each, about 2 s in all) besides its large ones
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
