@@ -12,14 +12,13 @@ from jaxtyping import Float
 from ..recording import Program
 from ._dwell import smoothed_speed
 from ._iso_ci import (
-    LEVEL,
     N_BOOT,
     Interval,
     batch_rotation_angle,
-    max_interval,
     max_length_interval,
+    max_scale_interval,
     pair,
-    rp_gaussian_interval,
+    rp_scale,
     t_interval,
     three_s_interval,
     with_intervals,
@@ -43,8 +42,8 @@ class PathCharacteristics:
     (max − min speed) [m/s]. `plane_AT`, `plane_RT` `(n_planes,)` per plane. `ci`: 95 %
     intervals keyed by the JSON names without unit, in SI (fractions for AV, RV):
     the restricted bootstrap of the maximum over planes for AT (position, a/b/c, angle;
-    `max_length_interval`), simultaneous per-plane Gaussian / χ² intervals for RT
-    (`max_interval`), Student t / χ² for AV / RV; none for FV (a maximum over passes).
+    `max_length_interval`) and for RT (position, a/b/c; `max_scale_interval`), Student
+    t / χ² for AV / RV; none for FV (a maximum over passes).
     """
 
     name: str
@@ -243,25 +242,22 @@ def path_statistics(
             warnings.simplefilter("ignore", RuntimeWarning)  # a resample can miss a plane
             at_all[use], rt_all[use] = plane_at(x), plane_rt(x)
             at_abc = np.nanmax(np.abs(np.nanmean(e, axis=0)), axis=0)
-            rt_abc = np.nanmax(3.0 * np.nanstd(e, axis=0, ddof=1), axis=0)
+            s3 = 3.0 * np.nanstd(e, axis=0, ddof=1)  # (planes, 3)
+            rt_abc = np.nanmax(s3, axis=0)
             at_angle = float(np.nanmax(plane_angle(q0)))
             ci["AT"] = max_length_interval(x - c, rng, n_boot)
-            # RT: a maximum over planes of equal-valued RTs is biased up; simultaneous
-            # per-plane intervals bound it instead (`max_interval`)
-            k_planes = x.shape[1]
-            simultaneous = 1.0 - (1.0 - LEVEL) / max(k_planes, 1)
+            # RT: the restricted parametric bootstrap of a maximum (`max_scale_interval`)
             ok_p = np.all(np.isfinite(x), axis=-1)
-            ci["RT"] = max_interval([
-                rp_gaussian_interval(x[ok_p[:, i], i] - x[ok_p[:, i], i].mean(0), simultaneous)
-                for i in range(k_planes)
+            rt_dof = np.array([
+                rp_scale(x[ok_p[:, i], i] - x[ok_p[:, i], i].mean(0))
+                for i in range(x.shape[1])
             ])  # fmt: skip
+            ci["RT"] = max_scale_interval(rt_dof[:, 0], rt_dof[:, 1], rng, n_boot)
+            n_e = np.sum(np.isfinite(e), axis=0)
             for k, axis in enumerate("abc"):
                 ek = e[..., k]
                 ci[f"AT{axis}"] = max_length_interval(ek[..., None], rng, n_boot)
-                ci[f"RT{axis}"] = max_interval([
-                    pair(*three_s_interval(ek[np.isfinite(ek[:, i]), i], simultaneous))
-                    for i in range(k_planes)
-                ])  # fmt: skip
+                ci[f"RT{axis}"] = max_scale_interval(s3[:, k], n_e[:, k] - 1.0, rng, n_boot)
             # rotation vectors of the errors: the length of their mean is the single
             # angle of the mean orientation to first order
             rv = np.full(x.shape, np.nan)
