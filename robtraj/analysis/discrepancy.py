@@ -20,6 +20,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+import equinox as eqx
+import jax
 import numpy as np
 from scipy import stats
 
@@ -31,6 +33,7 @@ from ..model import (
     amplitude_phase,
     describe,
     dictionary,
+    gravity_torque,
     is_effect,
     term,
 )
@@ -40,6 +43,13 @@ from ..recording import Recording
 ALPHA = 0.01
 #: significance of residual structure against one variable, before Bonferroni
 ALPHA_STRUCTURE = 0.001
+#: recordings shorter than this many frames are searched with every fit in the space of
+#: all candidates (one compilation); longer ones in a space per round. A fit in the space
+#: of the 47 candidates of a 6-joint robot costs ~0.18 ms per frame more than one in its
+#: own, a new space ~12 s of compilation (2-core machine); a search makes ~10 fits in ~3
+#: spaces, so the two break even near 20 000 frames
+SHARED_SPACE_FRAMES = 20_000
+
 #: contiguous time blocks of the held-out check; odd and even blocks are the two folds
 HELDOUT_BLOCKS = 8
 #: significant candidates refitted per round, strongest score first: the score test is
@@ -309,15 +319,15 @@ class _HeldOut:
     blocks it was fitted to see (an LED seen only in the held-out blocks has no
     position the fit could determine)."""
 
-    def __init__(self, rec: Recording, weights: np.ndarray, var: np.ndarray, space: tuple):
+    def __init__(self, rec: Recording, weights: np.ndarray, var: np.ndarray):
         from ..estimate.calibration import fit, predict_residuals
 
-        self._fit, self._predict, self.space = fit, predict_residuals, space
+        self._fit, self._predict = fit, predict_residuals
         n = rec.n_frames
         self.fold = (np.arange(n) * HELDOUT_BLOCKS // n) % 2
         self.rec, self.weights, self.var3 = rec, weights, 3.0 * var
 
-    def gap(self, estimate: tuple[str, ...], init) -> float:
+    def gap(self, estimate: tuple[str, ...], init, space: tuple[str, ...] = ()) -> float:
         r2, v3 = [], []
         for f in (0, 1):
             train = np.where((self.fold != f)[:, None], self.weights, 0.0)
@@ -326,10 +336,10 @@ class _HeldOut:
                 estimate=estimate,
                 weights=train,
                 init=init,
-                space=self.space,
+                space=space,
                 robust_sigma=False,
             )
-            d = self._predict(self.rec, res)[self.fold == f]
+            d = self._predict(self.rec, res, space)[self.fold == f]
             v = _aligned(self.rec, res, self.var3)[self.fold == f]
             trained = np.any(_aligned(self.rec, res, train) > 0, axis=0)
             use = np.isfinite(d[..., 0]) & np.isfinite(v) & trained[None, :]
@@ -407,31 +417,40 @@ def _term_block(res, effect: str) -> tuple[np.ndarray, np.ndarray]:
 def _term_inputs(rec: Recording, tau: float, threshold: float):
     """Per tracker frame: logged joint angles at t + τ, velocity signs (0 slower than
     `threshold` [rad/s]), gravity torques."""
-    import jax
     import jax.numpy as jnp
 
-    from ..model import gravity_torque, interpolate_joints, motion_sign, robot_from_log
+    from ..model import interpolate_joints, motion_sign, robot_from_log
 
     robot = robot_from_log(rec.robot.model, rec.robot.dh)
     lt, lj = np.asarray(rec.robot.time, float), np.asarray(rec.robot.joints, float)
     t = np.asarray(rec.time, float) + tau
     q = interpolate_joints(jnp.asarray(lt), jnp.asarray(lj), jnp.asarray(t))
-    tau_g = jax.vmap(lambda a: gravity_torque(robot, a))(q)
-    return q, jnp.asarray(motion_sign(lt, lj, t, threshold)), tau_g
+    return q, jnp.asarray(motion_sign(lt, lj, t, threshold)), _gravity_torques(robot, q)
+
+
+@eqx.filter_jit
+def _gravity_torques(robot, q):
+    """Gravity torque [N·m] per frame of joint angles `q` `(frames, joints)`."""
+    return jax.vmap(gravity_torque, in_axes=(None, 0))(robot, q)
+
+
+@eqx.filter_jit
+def _term_values(fn, c, q, sign, torque):
+    """A joint term's angle error [rad] per frame, `fn(q, sign, torque) @ c`."""
+    return jax.vmap(lambda a, b, d: fn(a, b, d) @ c)(q, sign, torque)
 
 
 def _where_it_acts(rec: Recording, res, effect: str, angles: np.ndarray) -> dict[str, Any]:
     """Where in the recording term `effect` acts: the range of its variable that the
     recording covers and the share of frames (joint terms; observations for LED terms)
     where the fitted term is at least half its peak."""
-    import jax
     import jax.numpy as jnp
 
     t = term(effect)
     c = jnp.asarray(res.effects[effect], float)
     if t.kind == "joint":
         q, sign, torque = _term_inputs(rec, res.time_offset, res.motion_threshold)
-        size = np.abs(np.asarray(jax.vmap(lambda a, b, d: t.fn(a, b, d) @ c)(q, sign, torque)))
+        size = np.abs(np.asarray(_term_values(t.fn, c, q, sign, torque)))
         qj = np.asarray(q)[:, t.joint]
         where = {"variable_range": [float(qj.min()), float(qj.max())], "unit": "rad"}
     else:
@@ -532,14 +551,14 @@ def _profile_motion_threshold(rec, named, current, weights, space):
     return best, refit(best, robust_sigma=True), (min(inside), max(inside))
 
 
-def _simpler_model(rec, named, current, offered, weights, space, n_obs):
+def _simpler_model(rec, named, current, offered, weights, n_obs, shared):
     """The dictionary term that alone has a lower BIC than the model `named` (fitted as
     `current`), with its refit, its score and the score tests from the nominal model;
     None if no term does. The terms tried are the `MAX_REFITS` strongest by the score
-    test from the nominal model."""
+    test from the nominal model, refitted in one space (`shared`, else their own)."""
     from ..estimate.calibration import fit, score_effects
 
-    nominal = fit(rec, weights=weights, space=space)
+    nominal = fit(rec, weights=weights, space=shared or ())
     tests = {
         c: _test(v["statistic"], v["dof"], n_obs, test="score", statistic=v["statistic"])
         for c, v in score_effects(rec, nominal, offered, weights=weights).items()
@@ -548,9 +567,11 @@ def _simpler_model(rec, named, current, offered, weights, space, n_obs):
     k_now = sum(_free_count(current, e) for e in named)
     bic_now = current.chi2 + k_now * np.log(n_obs)
     best = None
-    for c in sorted(tests, key=lambda c: -tests[c]["delta_bic"])[:MAX_REFITS]:
-        if tests[c]["delta_bic"] <= 0:
-            break
+    top = [
+        c for c in sorted(tests, key=lambda c: -tests[c]["delta_bic"]) if tests[c]["delta_bic"] > 0
+    ]
+    space = shared or tuple(top[:MAX_REFITS])
+    for c in top[:MAX_REFITS]:
         r = fit(rec, estimate=(c,), weights=weights, init=nominal, space=space)
         k = _free_count(r, c)
         bic = r.chi2 + k * np.log(n_obs)
@@ -563,7 +584,7 @@ def _simpler_model(rec, named, current, offered, weights, space, n_obs):
     score = _test(
         lr, k, n_obs, likelihood_ratio=lr, delta_bic_against_replaced=float(bic_now - bic)
     )
-    return c, r, score, tests
+    return c, r, score, tests, space
 
 
 def discover(
@@ -618,9 +639,10 @@ def discover(
     variables = _frame_variables(rec, angles)
 
     say("nominal fit")
-    # every fit of the search in one space (library and candidates): one compilation
-    space = library_space(candidates, include)
-    current = fit(rec, estimate=include, weights=weights, space=space)
+    # fits share a space (one compilation): that of every candidate on short recordings,
+    # else per round that of the named effects and the candidates it may refit
+    shared = library_space(candidates, include) if rec.n_frames < SHARED_SPACE_FRAMES else None
+    current = fit(rec, estimate=include, weights=weights, space=shared or ())
     var3 = _aligned(rec, current, 3.0 * var)
     weights_c = _aligned(rec, current, weights)
     n_obs = int(np.isfinite(current.residuals[..., 0]).sum()) * 3
@@ -638,7 +660,7 @@ def discover(
         return _gap_floor(res, var3, noise_model.level_rel_se)
 
     floor = floor_of(current)
-    heldout = _HeldOut(rec, weights, var, space)
+    heldout = _HeldOut(rec, weights, var)
     heldout_gap: float | None = None
     steps: list[Step] = []
     rejected: list[dict[str, Any]] = []
@@ -666,6 +688,7 @@ def discover(
             if scores[c]["p_value"] < alpha and scores[c]["delta_bic"] > 0
         ]
         accepted = None
+        space = shared or tuple(dict.fromkeys((*named, *significant[:MAX_REFITS])))
         for cand in significant[:MAX_REFITS]:
             say(f"refitting with {cand}")
             r = fit(rec, estimate=(*named, cand), weights=weights, init=current, space=space)
@@ -678,8 +701,8 @@ def discover(
                 continue
             say(f"held-out check of {cand}")
             if heldout_gap is None:
-                heldout_gap = heldout.gap(tuple(named), current)
-            after = heldout.gap((*named, cand), r)
+                heldout_gap = heldout.gap(tuple(named), current, space)
+            after = heldout.gap((*named, cand), r, space)
             score.update(heldout_gap_before_m=heldout_gap, heldout_gap_after_m=after)
             if heldout_gap - after > floor:
                 accepted = (cand, r, score)
@@ -696,7 +719,7 @@ def discover(
             _, current, interval = _profile_motion_threshold(
                 rec, named + [best], current, weights, space
             )
-            heldout_gap = heldout.gap((*named, best), current)
+            heldout_gap = heldout.gap((*named, best), current, space)
             score.update(heldout_gap_after_m=heldout_gap)
         # candidates the score test cannot tell from the named one
         alternatives = tuple(
@@ -722,14 +745,14 @@ def discover(
                 test = _test(lr, max(k, 1), n_obs)
                 needed = test["p_value"] < ALPHA / max(len(candidates), 1) and test["delta_bic"] > 0
                 if needed:
-                    h = heldout.gap(tuple(keep), r)
+                    h = heldout.gap(tuple(keep), r, space)
                     needed = h - heldout_gap > floor
                 if not needed:
                     replaces.append(old)
                     named.remove(old)
                     tried.add(old)
                     current = r
-                    heldout_gap = heldout.gap(tuple(named), current)
+                    heldout_gap = heldout.gap(tuple(named), current, space)
         gaps.append(_gap(current, var3, _share(current)))
         floor = floor_of(current)
         steps.append(
@@ -760,12 +783,12 @@ def discover(
     offered = [c for c in candidates if term(c) is not None and c not in named]
     if offered and any(term(n) is None for n in named):
         say(f"is one dictionary term a simpler model than {', '.join(named)}?")
-        swap = _simpler_model(rec, named, current, offered, weights, space, n_obs)
+        swap = _simpler_model(rec, named, current, offered, weights, n_obs, shared)
         if swap is not None:
-            c, r, score, tests = swap
+            c, r, score, tests, swap_space = swap
             if heldout_gap is None:
-                heldout_gap = heldout.gap(tuple(named), current)
-            h = heldout.gap((c,), r)
+                heldout_gap = heldout.gap(tuple(named), current, shared or ())
+            h = heldout.gap((c,), r, swap_space)
             score.update(heldout_gap_before_m=heldout_gap, heldout_gap_after_m=h)
             if h <= heldout_gap + floor:
                 say(f"{c} alone replaces {', '.join(named)}")

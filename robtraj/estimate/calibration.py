@@ -462,16 +462,19 @@ def fit(
     )
 
 
-def predict_residuals(recording: Recording, calibration: CalibrationResult) -> np.ndarray:
+def predict_residuals(
+    recording: Recording, calibration: CalibrationResult, space: Sequence[str] = ()
+) -> np.ndarray:
     """Residuals (measured − predicted) [m], camera frame, of every seen observation of
     `recording` under `calibration`'s parameters, none refitted: `(frames, leds, 3)` in
     the recording's frames and `calibration.led_ids` order, NaN where unseen (as
     `CalibrationResult.residuals`, which leaves out observations of weight zero).
+    `space`: that of the fit which made `calibration` (`fit`), whose compiled kernels
+    then serve again.
 
     Serves held-out evaluation: fit with weights zero on some frames, then compare the
     prediction there."""
-    # the library's space: one compilation whatever the calibration estimated
-    space = library_space(calibration.estimated, tuple(calibration.effects))
+    space = tuple(dict.fromkeys((*calibration.estimated, *space)))
     st = _setup(recording, (), calibration, None, None, lambda _m: None, False, space)
     data = st.data
     d, _ = cp.evaluate(

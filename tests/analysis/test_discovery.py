@@ -91,6 +91,27 @@ def test_an_effect_outside_the_library_is_named_as_its_term(hidden):
     assert words and (term(effect).kind != "joint" or f"joint {term(effect).joint + 1}" in words)
 
 
+def test_a_space_per_round_gives_the_search_of_one_shared_space(monkeypatch):
+    """Long recordings are searched with a space per round (`SHARED_SPACE_FRAMES`): the
+    same search as in the space of every candidate — names, likelihood ratios, held-out
+    gaps and the final χ² agree (the held columns enter no estimate: equal to rounding)."""
+    import robtraj.analysis.discrepancy as d
+
+    make, effect, amplitude = HIDDEN["2 cycles/rev, joint 1"]
+    rec = _recording([make(amplitude)])
+    shared = discover(rec)
+    monkeypatch.setattr(d, "SHARED_SPACE_FRAMES", 0)
+    per_round = discover(rec)
+    assert per_round.named == shared.named == [effect]
+    keys = ("likelihood_ratio", "heldout_gap_before_m", "heldout_gap_after_m")
+    for a, b in zip(per_round.steps, shared.steps, strict=True):
+        np.testing.assert_allclose(
+            [a.score[k] for k in keys], [b.score[k] for k in keys], rtol=1e-8
+        )
+    np.testing.assert_allclose(per_round.gaps, shared.gaps, rtol=1e-8)
+    np.testing.assert_allclose(per_round.calibration.chi2, shared.calibration.chi2, rtol=1e-10)
+
+
 @pytest.mark.exhaustive
 @pytest.mark.parametrize("scale", [1.0, 2.0])
 @pytest.mark.parametrize("hidden", list(HIDDEN))
