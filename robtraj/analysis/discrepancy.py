@@ -551,14 +551,16 @@ def _profile_motion_threshold(rec, named, current, weights, space):
     return best, refit(best, robust_sigma=True), (min(inside), max(inside))
 
 
-def _simpler_model(rec, named, current, offered, weights, n_obs, shared):
+def _simpler_model(rec, named, current, offered, weights, n_obs, shared, nominal=None):
     """The dictionary term that alone has a lower BIC than the model `named` (fitted as
-    `current`), with its refit, its score and the score tests from the nominal model;
-    None if no term does. The terms tried are the `MAX_REFITS` strongest by the score
-    test from the nominal model, refitted in one space (`shared`, else their own)."""
+    `current`), with its refit (no cluster-robust σ), its score and the score tests from
+    the nominal model (`nominal`, fitted here if None); None if no term does. The terms
+    tried are the `MAX_REFITS` strongest by the score test from the nominal model,
+    refitted in one space (`shared`, else their own)."""
     from ..estimate.calibration import fit, score_effects
 
-    nominal = fit(rec, weights=weights, space=shared or ())
+    if nominal is None:
+        nominal = fit(rec, weights=weights, space=shared or (), robust_sigma=False)
     tests = {
         c: _test(v["statistic"], v["dof"], n_obs, test="score", statistic=v["statistic"])
         for c, v in score_effects(rec, nominal, offered, weights=weights).items()
@@ -572,7 +574,7 @@ def _simpler_model(rec, named, current, offered, weights, n_obs, shared):
     ]
     space = shared or tuple(top[:MAX_REFITS])
     for c in top[:MAX_REFITS]:
-        r = fit(rec, estimate=(c,), weights=weights, init=nominal, space=space)
+        r = fit(rec, estimate=(c,), weights=weights, init=nominal, space=space, robust_sigma=False)
         k = _free_count(r, c)
         bic = r.chi2 + k * np.log(n_obs)
         if k and bic < bic_now and (best is None or bic < best[2]):
@@ -642,7 +644,14 @@ def discover(
     # fits share a space (one compilation): that of every candidate on short recordings,
     # else per round that of the named effects and the candidates it may refit
     shared = library_space(candidates, include) if rec.n_frames < SHARED_SPACE_FRAMES else None
-    current = fit(rec, estimate=include, weights=weights, space=shared or ())
+    # search fits leave out the cluster-robust σ (a pass and a compilation of their own);
+    # the fit a step reports is refitted with it (`reported`)
+    current = fit(rec, estimate=include, weights=weights, space=shared or (), robust_sigma=False)
+    nominal_fit, fitted_in, robust = current, shared or (), False
+
+    def reported(res, estimate, space):
+        return fit(rec, estimate=tuple(estimate), weights=weights, init=res, space=space)
+
     var3 = _aligned(rec, current, 3.0 * var)
     weights_c = _aligned(rec, current, weights)
     n_obs = int(np.isfinite(current.residuals[..., 0]).sum()) * 3
@@ -691,7 +700,14 @@ def discover(
         space = shared or tuple(dict.fromkeys((*named, *significant[:MAX_REFITS])))
         for cand in significant[:MAX_REFITS]:
             say(f"refitting with {cand}")
-            r = fit(rec, estimate=(*named, cand), weights=weights, init=current, space=space)
+            r = fit(
+                rec,
+                estimate=(*named, cand),
+                weights=weights,
+                init=current,
+                space=space,
+                robust_sigma=False,
+            )
             k = _free_count(r, cand)
             if k == 0:
                 continue
@@ -701,7 +717,7 @@ def discover(
                 continue
             say(f"held-out check of {cand}")
             if heldout_gap is None:
-                heldout_gap = heldout.gap(tuple(named), current, space)
+                heldout_gap = heldout.gap(tuple(named), current, fitted_in)
             after = heldout.gap((*named, cand), r, space)
             score.update(heldout_gap_before_m=heldout_gap, heldout_gap_after_m=after)
             if heldout_gap - after > floor:
@@ -713,12 +729,14 @@ def discover(
             stopped = "nothing_qualifies"
             break
         best, current, score = accepted
+        fitted_in, robust = space, False
         interval = None
         if term(best) is not None and term(best).motion:
             say(f"deadband of {best}: profile of the motion threshold")
             _, current, interval = _profile_motion_threshold(
                 rec, named + [best], current, weights, space
             )
+            robust = True
             heldout_gap = heldout.gap((*named, best), current, space)
             score.update(heldout_gap_after_m=heldout_gap)
         # candidates the score test cannot tell from the named one
@@ -739,6 +757,7 @@ def discover(
                     weights=weights,
                     init=_without(current, old),
                     space=space,
+                    robust_sigma=False,
                 )
                 k = _free_count(current, old)
                 lr = float(r.chi2 - current.chi2)
@@ -751,8 +770,10 @@ def discover(
                     replaces.append(old)
                     named.remove(old)
                     tried.add(old)
-                    current = r
+                    current, robust = r, False
                     heldout_gap = heldout.gap(tuple(named), current, space)
+        if not robust:
+            current, robust = reported(current, named, space), True
         gaps.append(_gap(current, var3, _share(current)))
         floor = floor_of(current)
         steps.append(
@@ -783,16 +804,26 @@ def discover(
     offered = [c for c in candidates if term(c) is not None and c not in named]
     if offered and any(term(n) is None for n in named):
         say(f"is one dictionary term a simpler model than {', '.join(named)}?")
-        swap = _simpler_model(rec, named, current, offered, weights, n_obs, shared)
+        swap = _simpler_model(
+            rec,
+            named,
+            current,
+            offered,
+            weights,
+            n_obs,
+            shared,
+            nominal=None if include else nominal_fit,
+        )
         if swap is not None:
             c, r, score, tests, swap_space = swap
             if heldout_gap is None:
-                heldout_gap = heldout.gap(tuple(named), current, shared or ())
+                heldout_gap = heldout.gap(tuple(named), current, fitted_in)
             h = heldout.gap((c,), r, swap_space)
             score.update(heldout_gap_before_m=heldout_gap, heldout_gap_after_m=h)
             if h <= heldout_gap + floor:
                 say(f"{c} alone replaces {', '.join(named)}")
-                replaced, named, current, heldout_gap = tuple(named), [c], r, h
+                replaced, named, heldout_gap = tuple(named), [c], h
+                current, fitted_in = reported(r, named, swap_space), swap_space
                 gaps.append(_gap(current, var3, _share(current)))
                 floor = floor_of(current)
                 steps.append(
@@ -808,6 +839,8 @@ def discover(
                 )
             else:
                 rejected.append({"effect": c, **score})
+    if not robust:
+        current = reported(current, named, fitted_in)
     structure = _structure(current.residuals, weights_c, variables)
     after = {k: _binned_rms(current.residuals, variables, k) for k in before}
     unexplained = gaps[-1] > floor and any(v["significant"] for v in structure.values())

@@ -38,6 +38,8 @@ from ..model import (
     flange_jacobian,
     flange_poses,
     interpolate_joints,
+    joint_term_features,
+    joint_term_joints,
     led_positions,
     motion_direction,
     motion_sign,
@@ -208,16 +210,15 @@ def _effect_columns(g, problem: BundleProblem, frames: Frames, tool0, ad, kinema
         _, twist, rate, torque, t_robot = kinematics
         dh = jnp.einsum("cab,cbjk->cajk", ad, twist)  # (C, 6, joints, [θ, d, a, α, β])
         turn = dh[..., 0]
-        q_log = None
-    cols = []
-    for name, size in zip(problem.free, effect_sizes(problem.effects, problem.free)):
-        t = term(name)
-        if t is not None and t.kind == "joint":
-            if q_log is None:
-                q_log = interpolate_joints(problem.log_time, problem.joints, t_robot)
-            phi = jax.vmap(t.fn)(q_log, frames.moving, torque)  # (C, k)
-            col = turn[:, :, t.joint, None] * phi[:, None, :]
-        elif name == "time_offset":
+    sizes = effect_sizes(problem.effects, problem.free)
+    joint_terms = [n for n in problem.free if term(n) is not None and term(n).kind == "joint"]
+    cols, order, at = [], [], 0
+    for name, size in zip(problem.free, sizes):
+        order.append(np.arange(at, at + size))
+        at += size
+        if name in joint_terms:
+            continue
+        if name == "time_offset":
             col = jnp.einsum("caj,cj->ca", turn, rate)[..., None]
         elif name == "joint_offset":
             col = turn
@@ -236,7 +237,18 @@ def _effect_columns(g, problem: BundleProblem, frames: Frames, tool0, ad, kinema
         else:  # LED-level effects act on the LED positions, not on the tool pose
             col = jnp.zeros((n, 6, size), g.dtype)
         cols.append(col)
-    return jnp.concatenate(cols, -1)
+    if not joint_terms:
+        return jnp.concatenate(cols, -1)
+    # every joint term's columns from one feature array, then put in the order of g
+    q_log = interpolate_joints(problem.log_time, problem.joints, t_robot)
+    phi = jax.vmap(lambda a, s, tau: joint_term_features(joint_terms, a, s, tau))(
+        q_log, frames.moving, torque
+    )  # (C, k)
+    cols.append(turn[:, :, joint_term_joints(joint_terms)] * phi[:, None, :])
+    rest = [o for name, o in zip(problem.free, order) if name not in joint_terms]
+    mine = [o for name, o in zip(problem.free, order) if name in joint_terms]
+    perm = np.argsort(np.concatenate(rest + mine))
+    return jnp.concatenate(cols, -1)[..., perm]
 
 
 def _led_effect_columns(problem: BundleProblem) -> list[int]:

@@ -247,7 +247,7 @@ def fit(
       library's space), at the price of Jacobian columns for the held effects.
     - `robust_sigma`: compute the cluster-robust covariance (one more pass over the
       recording, with per-cluster sums); False leaves the Gauss–Newton one in its place
-      (fits whose parameters are not reported, e.g. the discrepancy search's held-out
+      (fits whose σ are not reported, e.g. the discrepancy search's refits and held-out
       fits).
     - `hold`: parameter groups held at their start values (`init`'s): any of
       ``"camera_from_base"``, ``"flange_from_tool"``, ``"constellation"`` (to refit only

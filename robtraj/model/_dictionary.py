@@ -269,14 +269,36 @@ def term_names() -> tuple[str, ...]:
     return tuple(_REGISTRY)
 
 
+def _joint_terms(names: Sequence[str]) -> list[Term]:
+    return [_REGISTRY[n] for n in names if n in _REGISTRY and _REGISTRY[n].kind == "joint"]
+
+
+def joint_term_features(
+    names: Sequence[str], q: jnp.ndarray, s: jnp.ndarray, tau: jnp.ndarray
+) -> jnp.ndarray:
+    """The features ``fn(q, s, τ)`` of the joint terms among `names` for one frame,
+    concatenated `(k,)` [rad per unit coefficient]: one array for all terms, so that the
+    compiled program does not grow by a product per term (`joint_term_joints` says which
+    joint each entry acts on)."""
+    ts = _joint_terms(names)
+    if not ts:
+        return jnp.zeros(0, q.dtype)
+    return jnp.concatenate([t.fn(q, s, tau) for t in ts])
+
+
+def joint_term_joints(names: Sequence[str]) -> np.ndarray:
+    """The joint (0-based) each entry of `joint_term_features(names, ...)` acts on."""
+    return np.array([t.joint for t in _joint_terms(names) for _ in range(t.size)], int)
+
+
 def joint_term_error(terms: dict, q: jnp.ndarray, s: jnp.ndarray, tau: jnp.ndarray) -> jnp.ndarray:
     """Sum of the joint terms in `terms` {name: coefficients} for one frame `(joints,)` [rad]."""
-    out = jnp.zeros_like(q)
-    for name, c in terms.items():
-        t = _REGISTRY[name]
-        if t.kind == "joint":
-            out = out.at[t.joint].add(jnp.dot(t.fn(q, s, tau), c))
-    return out
+    names = [t.name for t in _joint_terms(list(terms))]
+    if not names:
+        return jnp.zeros_like(q)
+    c = jnp.concatenate([jnp.asarray(terms[n], q.dtype) for n in names])
+    onehot = np.arange(q.shape[0])[None, :] == joint_term_joints(names)[:, None]
+    return (joint_term_features(names, q, s, tau) * c) @ jnp.asarray(onehot, q.dtype)
 
 
 def led_term_offset(terms: dict, y, n, theta):
