@@ -2,12 +2,18 @@
 
 Importing robtraj enables JAX float64 (``jax_enable_x64``): estimation runs in
 double precision everywhere (DESIGN section 3). The kernels in
-``robtraj.jax_ops`` are dtype-generic, so float32 inputs stay float32.
+``robtraj.jax_ops`` are dtype-generic, so float32 inputs stay float32. It also asks
+XLA's CPU compiler for its faster-compiling loop emitters (`robtraj._xla_flags`) unless
+JAX's backend has started already.
 """
 
 import importlib.metadata
 
-import jax
+from ._xla_flags import set_compile_flags
+
+set_compile_flags()
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

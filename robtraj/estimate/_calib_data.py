@@ -9,26 +9,20 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
 from ..model import (
     MOTION_THRESHOLD,
     RobotModel,
-    interpolate_joints,
     motion_direction,
     motion_sign,
     robot_from_log,
 )
-from ..recording import Recording
+from ..recording import Recording, finite_points
 
 #: minimum number of tracker frames inside the robot log's time span
 MIN_OVERLAP_FRAMES = 10
-
-
-_interp = jax.jit(interpolate_joints)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,9 +69,10 @@ class CalibrationData:
     motion_threshold: float = MOTION_THRESHOLD
 
     def joints_at(self, idx: np.ndarray, time_offset: float = 0.0) -> np.ndarray:
-        """Logged joint angles `(len(idx), joints)` at frames `idx` (robot clock t + τ)."""
-        t = jnp.asarray(self.time[idx] + time_offset)
-        return np.asarray(_interp(jnp.asarray(self.log_time), jnp.asarray(self.joints), t))
+        """Logged joint angles `(len(idx), joints)` at frames `idx` (robot clock t + τ),
+        linearly interpolated (for grouping frames into robot poses)."""
+        t = self.time[idx] + time_offset
+        return np.stack([np.interp(t, self.log_time, q) for q in self.joints.T], -1)
 
     @property
     def n_frames(self) -> int:
@@ -88,19 +83,25 @@ class CalibrationData:
         return int(self.led_ids.shape[0])
 
 
-def prepare(
-    rec: Recording,
-    *,
-    time_offset: float = 0.0,
-    constellation: np.ndarray | None = None,
-    motion_threshold: float = MOTION_THRESHOLD,
-) -> CalibrationData:
-    """Check `rec` and build the `CalibrationData` (see there).
+@dataclasses.dataclass(frozen=True)
+class _Checked:
+    """What `check` found usable in a recording (the input of `prepare`)."""
 
-    `time_offset` [s] is the clock offset used for the backlash motion direction;
-    `constellation` `(tool LEDs, 3)` [m] replaces the nominal one as the reference;
-    `motion_threshold` [rad/s] the speed below which a joint counts as at rest.
-    """
+    robot: RobotModel
+    log_time: np.ndarray
+    joints: np.ndarray
+    reference: np.ndarray
+    tool_ids: np.ndarray
+    cols: np.ndarray  # each tool LED's column in the recording, −1 where absent
+    time: np.ndarray
+    inside: np.ndarray  # tracker frames inside the robot log's time span
+
+
+def check(
+    rec: Recording, *, time_offset: float = 0.0, constellation: np.ndarray | None = None
+) -> _Checked:
+    """The checks of `prepare` on `rec`, without its work on the observations: raises
+    `UserError` (one line) for what a user can fix."""
     if rec.robot is None:
         raise UserError("the recording has no robot log (/robot): calibration needs joint angles")
     if rec.tool is None:
@@ -141,18 +142,43 @@ def prepare(
             f"tracker frames ({t[0]:.3f} s to {t[-1]:.3f} s) overlap in only {int(inside.sum())} "
             f"frames (need {MIN_OVERLAP_FRAMES}); are both clocks in the same time base?"
         )
-    pos = np.full((t.shape[0], tool_ids.shape[0], 3), np.nan)
+    return _Checked(robot, log_time, joints, ref, tool_ids, cols, t, inside)
+
+
+def prepare(
+    rec: Recording,
+    *,
+    time_offset: float = 0.0,
+    constellation: np.ndarray | None = None,
+    motion_threshold: float = MOTION_THRESHOLD,
+    checked: _Checked | None = None,
+) -> CalibrationData:
+    """Check `rec` and build the `CalibrationData` (see there).
+
+    `time_offset` [s] is the clock offset used for the backlash motion direction;
+    `constellation` `(tool LEDs, 3)` [m] replaces the nominal one as the reference;
+    `motion_threshold` [rad/s] the speed below which a joint counts as at rest;
+    `checked`: `check`'s result for the same arguments, if the caller has it.
+    """
+    c = checked or check(rec, time_offset=time_offset, constellation=constellation)
+    robot, log_time, joints, ref, tool_ids = c.robot, c.log_time, c.joints, c.reference, c.tool_ids
+    cols, t, inside, tool = c.cols, c.time, c.inside, rec.tool
     have = cols >= 0
-    pos[:, have] = np.asarray(rec.positions, np.float64)[:, cols[have]]
-    seen = np.all(np.isfinite(pos), axis=-1)
+    if np.array_equal(cols, np.arange(rec.n_leds)):
+        pos = np.asarray(rec.positions, np.float64)
+    else:
+        pos = np.full((t.shape[0], tool_ids.shape[0], 3), np.nan)
+        pos[:, have] = np.asarray(rec.positions, np.float64)[:, cols[have]]
+    seen = finite_points(pos)
     led_keep = have  # every tool LED the tracker reports (fixed shapes across recordings)
     never = ~seen[inside].any(0) & have
     frame_keep = inside & seen.any(1)
     frames = np.flatnonzero(frame_keep)
-    pos, seen = pos[frames], seen[frames]
+    if frames.size < t.shape[0]:
+        pos, seen = pos[frames], seen[frames]
     if not led_keep.all():
         pos, seen = pos[:, led_keep], seen[:, led_keep]
-    pos[~seen] = 0.0  # a copy: the recording's arrays are not touched
+    pos = np.where(seen[..., None], pos, 0.0)  # a copy: the recording's arrays are not touched
     if seen.sum() < 10:
         raise UserError(
             f"only {int(seen.sum())} finite LED observations overlap the robot log (need 10)"

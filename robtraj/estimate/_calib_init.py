@@ -6,7 +6,8 @@
    poses, up to `max_moving` single moving frames (evenly spread) are added.
 2. Tool poses in the camera frame: weighted Procrustes of the reference constellation
    to each group's LED positions (`robtraj.jax_ops.weighted_procrustes`).
-3. Flange poses: forward kinematics of the group's joints (nominal robot + fixed effects).
+3. Flange poses: the forward kinematics of every frame (nominal robot + fixed effects,
+   computed by the caller), taken at the group's middle frame.
 4. Robot-world/hand-eye ``camera_from_tool_i = Z · base_from_flange_i · X`` solved by
    Shah's closed form (Kronecker null space of the rotation equations, then
    orthonormalisation, then linear least squares for the translations); for a run whose
@@ -18,11 +19,10 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .._errors import UserError
-from ..model import Effects, flange_poses
 from ._calib_data import CalibrationData
 
 _STATIC_SPEED = 1e-4  # [rad/s] every joint slower than this: the robot stands still
@@ -50,19 +50,38 @@ def dwells(data: CalibrationData, min_dwell: float) -> list[np.ndarray]:
 
 
 def _distinct(q: np.ndarray) -> int:
-    reps: list[np.ndarray] = []
+    """Number of joint vectors in `q` `(G, joints)` farther than `_DISTINCT` from every
+    earlier one kept (greedy)."""
+    reps = q[:0]
     for row in q:
-        if all(np.max(np.abs(row - r)) > _DISTINCT for r in reps):
-            reps.append(row)
-    return len(reps)
+        if not reps.shape[0] or np.min(np.max(np.abs(reps - row), axis=1)) > _DISTINCT:
+            reps = np.concatenate([reps, row[None]])
+    return reps.shape[0]
 
 
 def _rotation_rank(quats: np.ndarray) -> int:
     """Number of independent rotation axes among the poses' rotations relative to the first."""
-    r0 = jaxlie.SO3(jnp.asarray(quats[0]))
-    rv = np.asarray(jax.vmap(lambda q: (r0.inverse() @ jaxlie.SO3(q)).log())(jnp.asarray(quats)))
+    r = Rotation.from_quat(quats, scalar_first=True)
+    rv = (r[0].inv() * r).as_rotvec()
     s = np.linalg.svd(rv, compute_uv=False) if rv.shape[0] > 1 else np.zeros(1)
     return int(np.sum(s > np.deg2rad(1.0)))
+
+
+# The closed form is NumPy on a few hundred poses: its conversions go through SciPy's
+# rotations (jaxlie's, called eagerly, would compile each of their operations).
+def _matrices(poses: np.ndarray) -> np.ndarray:
+    """`(G, 4, 4)` homogeneous matrices of poses `(G, 7)` wxyz_xyz."""
+    m = np.zeros((poses.shape[0], 4, 4))
+    m[:, :3, :3] = Rotation.from_quat(poses[:, :4], scalar_first=True).as_matrix()
+    m[:, :3, 3] = poses[:, 4:]
+    m[:, 3, 3] = 1.0
+    return m
+
+
+def _pose_from_matrix(m: np.ndarray) -> np.ndarray:
+    """wxyz_xyz `(7,)` of a homogeneous matrix `(4, 4)` (w ≥ 0)."""
+    q = Rotation.from_matrix(m[:3, :3]).as_quat(canonical=True, scalar_first=True)
+    return np.concatenate([q, m[:3, 3]])
 
 
 @jax.jit
@@ -72,21 +91,18 @@ def _procrustes(model, measured, weight):
     return weighted_procrustes(model, jnp.where(weight[..., None] > 0, measured, jnp.nan), weight)
 
 
-@jax.jit
-def _flange(robot, effects, q):
-    return flange_poses(robot, effects, q, jnp.ones_like(q)).wxyz_xyz
-
-
 def pose_pairs(
     data: CalibrationData,
-    effects: Effects,
+    base_from_flange: np.ndarray,
     constellation: np.ndarray,
     *,
     min_dwell: float = 0.2,
     max_moving: int = 60,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """``(camera_from_tool (G, 7), base_from_flange (G, 7), n_dwells)`` as jaxlie
-    ``wxyz_xyz`` for the groups (static dwells first, then moving frames if needed)."""
+    ``wxyz_xyz`` for the groups (static dwells first, then moving frames if needed), from
+    the flange pose of every frame of `data` `(n, 7)` (a dwell's is that of its middle
+    frame: the robot stands still) and the measured LED positions."""
     groups_static = dwells(data, min_dwell)
     moving = np.ones(data.n_frames, bool)
     for d in groups_static:
@@ -124,21 +140,20 @@ def pose_pairs(
     pad = -n_groups % 32  # fixed shapes: one compilation for many recordings
     mean = np.concatenate([mean, np.zeros((pad, *mean.shape[1:]))])
     weight = np.concatenate([weight, np.zeros((pad, weight.shape[1]))])
-    fit = _procrustes(jnp.asarray(constellation), jnp.asarray(mean), jnp.asarray(weight))
+    fit = _procrustes(np.asarray(constellation, float), mean, weight)
     valid = (np.asarray(fit.valid) & ((weight > 0).sum(1) >= 3))[:n_groups]
     camera_from_tool = np.concatenate(
         [np.asarray(fit.quaternion_wxyz), np.asarray(fit.position)], -1
     )[:n_groups]
     q = np.array(q_groups)
-    q_pad = np.concatenate([q, np.repeat(q[:1], pad, 0)])
-    base_from_flange = np.asarray(_flange(data.robot, effects, jnp.asarray(q_pad)))[:n_groups]
-    camera_from_tool, base_from_flange = camera_from_tool[valid], base_from_flange[valid]
+    flange = np.asarray(base_from_flange)[[g[g.size // 2] for g in groups]]
+    camera_from_tool, flange = camera_from_tool[valid], flange[valid]
     if _distinct(q[valid]) < 3:
         raise UserError(
             "too few distinct robot poses with the tool seen: calibration needs at least 3 "
             "poses, rotated about two different axes to determine every parameter"
         )
-    return camera_from_tool, base_from_flange, len(groups_static)
+    return camera_from_tool, flange, len(groups_static)
 
 
 def closed_form_start(
@@ -153,8 +168,7 @@ def closed_form_start(
     refinement names what it leaves undetermined."""
     if _rotation_rank(base_from_flange[:, :4]) >= 2:
         return robot_world_hand_eye(camera_from_tool, base_from_flange)
-    A = np.asarray(jax.vmap(lambda p: jaxlie.SE3(p).as_matrix())(jnp.asarray(camera_from_tool)))
-    B = np.asarray(jax.vmap(lambda p: jaxlie.SE3(p).as_matrix())(jnp.asarray(base_from_flange)))
+    A, B = _matrices(camera_from_tool), _matrices(base_from_flange)
     t_x = np.asarray(flange_from_tool)[4:]
     src = np.einsum("gij,j->gi", B[:, :3, :3], t_x) + B[:, :3, 3]  # tool origins, base frame
     dst = A[:, :3, 3]  # tool origins, camera frame
@@ -174,8 +188,8 @@ def closed_form_start(
     X = np.eye(4)
     X[:3, :3], X[:3, 3] = rx, t_x
     return (
-        np.asarray(jaxlie.SE3.from_matrix(jnp.asarray(Z)).wxyz_xyz),
-        np.asarray(jaxlie.SE3.from_matrix(jnp.asarray(X)).wxyz_xyz),
+        _pose_from_matrix(Z),
+        _pose_from_matrix(X),
     )
 
 
@@ -198,8 +212,7 @@ def robot_world_hand_eye(
     scaled and orthonormalised; then ``R_A t_Y − t_Z = R_Z t_B − t_A`` by least squares.
     Inputs `(G, 7)` ``wxyz_xyz``, G ≥ 3 poses rotated about two different axes.
     """
-    A = np.asarray(jax.vmap(lambda p: jaxlie.SE3(p).as_matrix())(jnp.asarray(camera_from_tool)))
-    B = np.asarray(jax.vmap(lambda p: jaxlie.SE3(p).as_matrix())(jnp.asarray(base_from_flange)))
+    A, B = _matrices(camera_from_tool), _matrices(base_from_flange)
     eye = np.eye(3)
     rows = [np.hstack([np.kron(eye, a[:3, :3]), -np.kron(b[:3, :3].T, eye)]) for a, b in zip(A, B)]
     _, _, vt = np.linalg.svd(np.vstack(rows))
@@ -219,6 +232,6 @@ def robot_world_hand_eye(
     Z[:3, :3], Z[:3, 3] = rz, tz
     X = np.linalg.inv(Y)
     X[:3, :3] = _orthonormal(X[:3, :3])
-    z_pose = np.asarray(jaxlie.SE3.from_matrix(jnp.asarray(Z)).wxyz_xyz)
-    x_pose = np.asarray(jaxlie.SE3.from_matrix(jnp.asarray(X)).wxyz_xyz)
+    z_pose = _pose_from_matrix(Z)
+    x_pose = _pose_from_matrix(X)
     return z_pose, x_pose

@@ -28,6 +28,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from ..jax_ops import se3_right_jacobian
 from ..model import (
     Effects,
     RobotModel,
@@ -146,13 +147,6 @@ def predict(g: Array, p: Array, problem: BundleProblem, frames: Frames) -> Array
     return led_positions(tool, eff, p, problem.normals)
 
 
-def _right_jacobian(x: Array) -> Array:
-    """`(6, 6)` right Jacobian of SE3: ``exp(x + δ) = exp(x)·exp(Jr(x)·δ + O(δ²))``."""
-    return jax.jacfwd(lambda d: (jaxlie.SE3.exp(x).inverse() @ jaxlie.SE3.exp(x + d)).log())(
-        jnp.zeros_like(x)
-    )
-
-
 def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
     """camera←tool per frame and ``∂ξ/∂g`` `(C, 6, q)` of its tangent ``T(g) = T(0) exp(ξ)``.
 
@@ -167,8 +161,11 @@ def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
     # and exp(g + δ) = exp(g)·exp(Jr(g)·δ), ξ = Ad((F·fft(gf))⁻¹)·Jr(gc)·δc + Jr(gf)·δf
     _, fft, _ = _split(g, problem)
     ad = jax.vmap(lambda f: (f @ fft).inverse().adjoint())(fl0)  # (C, 6, 6)
-    jr_c, jr_f = _right_jacobian(g[:6]), _right_jacobian(g[6:12])
-    j_pose = jnp.concatenate([ad @ jr_c, jnp.broadcast_to(jr_f, ad.shape)], -1)
+    jr_c, jr_f = se3_right_jacobian(g[:6]), se3_right_jacobian(g[6:12])
+    # a sum over the six tangent entries written out: batches of tiny matrix products
+    # are slow on CPU
+    ad_jr = sum(ad[:, :, k, None] * jr_c[None, k, :] for k in range(6))
+    j_pose = jnp.concatenate([ad_jr, jnp.broadcast_to(jr_f, ad.shape)], -1)
     if g.shape[0] == 12:
         return tool0, j_pose
     j_eff = _effect_columns(g, problem, frames, tool0, ad, kinematics)
@@ -341,6 +338,14 @@ def _chunk_terms(g, p, problem, frames, per_frame=False):
     )
 
 
+def _rotate(rot: Float[Array, "c 3 3"], v: Float[Array, "*#c m 3"]) -> Float[Array, "c m 3"]:
+    """``rot[c] @ v[c, m]`` for every frame c and LED m, component by component (a batch
+    of 3×3 products as one loop, not as tiny matrix products)."""
+    if v.ndim == 2:
+        v = v[None]
+    return jnp.stack([sum(rot[:, i, j, None] * v[..., j] for j in range(3)) for i in range(3)], -1)
+
+
 def _skew(v: Array) -> Array:
     z = jnp.zeros_like(v[..., 0])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
@@ -362,13 +367,12 @@ def _chunk_terms_rigid(g, p, problem, frames, per_frame=False):
     """
     tool0, tg = _tool_jacobian(g, problem, frames)
     rot = jax.vmap(lambda t: t.rotation().as_matrix())(tool0)  # (C, 3, 3)
-    pred = jnp.einsum("cij,mj->cmi", rot, p) + tool0.translation()[:, None, :]
     w = frames.sqrt_weight**2
-    e = frames.measured - pred
-    u = jnp.einsum("cji,cmj->cmi", rot, e)  # residual in the tool frame
+    e = frames.measured - _rotate(rot, p) - tool0.translation()[:, None, :]
+    u = _rotate(jnp.swapaxes(rot, 1, 2), e)  # residual in the tool frame
     s0 = w.sum(1)
     s1 = w @ p
-    s2 = jnp.einsum("cm,mi,mj->cij", w, p, p)
+    s2 = (w @ (p[:, :, None] * p[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3)
     eye = jnp.eye(3, dtype=p.dtype)
     k = _skew(s1)
     a_rot = jnp.trace(s2, axis1=1, axis2=2)[:, None, None] * eye - s2
@@ -379,9 +383,8 @@ def _chunk_terms_rigid(g, p, problem, frames, per_frame=False):
         ],
         -2,
     )  # (C, 6, 6)
-    b_xi = jnp.concatenate(
-        [jnp.einsum("cm,cmi->ci", w, u), jnp.einsum("cm,cmi->ci", w, jnp.cross(p[None], u))], -1
-    )
+    wu = w[..., None] * u
+    b_xi = jnp.concatenate([wu.sum(1), jnp.cross(p[None], wu).sum(1)], -1)
     c = "c" if per_frame else ""
     blk = jnp.concatenate([jnp.broadcast_to(eye, p.shape[:1] + (3, 3)), _skew(p)], -2)  # (M,6,3)
     if per_frame:
@@ -392,11 +395,12 @@ def _chunk_terms_rigid(g, p, problem, frames, per_frame=False):
         tg_blk = sum(tg[:, k, :, None, None] * blk[None, None, :, k, :] for k in range(6))
         hgp = w[:, None, :, None] * tg_blk  # (C, q, M, 3)
     else:
-        hgg = jnp.einsum("caq,cab,cbr->qr", tg, a, tg)
+        a_tg = sum(a[:, :, k, None] * tg[:, None, k, :] for k in range(6))  # (C, 6, q)
+        hgg = jnp.einsum("caq,car->qr", tg, a_tg)
         hgp = jnp.einsum("maq,mab->qmb", jnp.einsum("cm,caq->maq", w, tg), blk)
     hpp = (w if per_frame else w.sum(0))[..., None, None] * eye
     bg = sum(tg[:, k, :] * b_xi[:, k, None] for k in range(6))  # (C, q)
-    bp = w[..., None] * u
+    bp = wu
     led_cols = _led_effect_columns(problem) if problem.led_columns else []
     if led_cols:
         idx = jnp.asarray(led_cols)
@@ -483,10 +487,10 @@ def evaluate(g: Array, p: Array, problem: BundleProblem, chunks: Frames):
         tool, eff = tool_poses(g, problem, frames)
         rot = jax.vmap(lambda t: t.rotation().as_matrix())(tool)
         if problem.rigid_leds:
-            pred = jnp.einsum("cij,mj->cmi", rot, p) + tool.translation()[:, None, :]
+            pred = _rotate(rot, p) + tool.translation()[:, None, :]
         else:
             pred = led_positions(tool, eff, p, problem.normals)
-        nrm = jnp.einsum("cij,mj->cmi", rot, problem.normals)
+        nrm = _rotate(rot, problem.normals)
         return None, (frames.measured - pred, emission_angle(pred, nrm))
 
     _, (d, theta) = jax.lax.scan(body, None, chunks)
@@ -554,7 +558,7 @@ def chunked_frames(data: CalibrationData, sqrt_w: np.ndarray, size: int) -> Fram
         if pad:
             tail = np.repeat(a[-1:], pad, axis=0) if fill_last else np.zeros((pad, *a.shape[1:]))
             a = np.concatenate([a, tail])
-        return jnp.asarray(a.reshape(k, size, *a.shape[1:]))
+        return jax.device_put(a.reshape(k, size, *a.shape[1:]))
 
     return Frames(
         time=padded(data.time),
@@ -572,7 +576,7 @@ def with_weights(chunks: Frames, w: np.ndarray) -> Frames:
     k, size = chunks.time.shape[:2]
     s = np.zeros((k * size, w.shape[1]))
     s[: w.shape[0]] = np.sqrt(w)
-    return eqx.tree_at(lambda f: f.sqrt_weight, chunks, jnp.asarray(s.reshape(k, size, -1)))
+    return eqx.tree_at(lambda f: f.sqrt_weight, chunks, jax.device_put(s.reshape(k, size, -1)))
 
 
 #: assumed probe uncertainty: position [m], rotation [rad]
@@ -702,14 +706,15 @@ def h_in_theta(hgg, hgp, hpp, basis: Array) -> Array:
     return 0.5 * (h + h.T)
 
 
-def recentre(problem: BundleProblem, theta: np.ndarray, basis: np.ndarray) -> BundleProblem:
+@eqx.filter_jit
+def recentre(problem: BundleProblem, theta: Array, basis: Array) -> BundleProblem:
     """Absorb a θ step into the problem's current values (θ = 0 is then the estimate)."""
-    d = jnp.asarray(theta)
+    d = theta
     q = d.shape[0] - basis.shape[1]
     cfb = jaxlie.SE3(problem.camera_from_base) @ jaxlie.SE3.exp(d[:6])
     fft = jaxlie.SE3(problem.flange_from_tool) @ jaxlie.SE3.exp(d[6:12])
     eff = apply_effects(problem.effects, problem.free, d[12:q])
-    p = problem.constellation + (jnp.asarray(basis) @ d[q:]).reshape(-1, 3)
+    p = problem.constellation + (basis @ d[q:]).reshape(-1, 3)
     return eqx.tree_at(
         lambda pr: (pr.camera_from_base, pr.flange_from_tool, pr.effects, pr.constellation),
         problem,

@@ -29,6 +29,8 @@ from __future__ import annotations
 from typing import Any
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Float, Int
 from scipy.optimize import nnls
@@ -50,6 +52,7 @@ BLOCKS = 8
 #: rounded to a rigid body, whose variances the model cannot tell
 MIN_SIGMA = 1e-9
 _C2 = np.array([1.0, 4.0, 1.0])  # squares of the second-difference coefficients
+_BLOCK = 1 << 17  # frames per block of `NoiseModel.observation_variance`
 
 
 class NoiseModel(eqx.Module):
@@ -93,10 +96,21 @@ class NoiseModel(eqx.Module):
         self, positions: Float[np.ndarray, "frames leds 3"], theta: Float[np.ndarray, "frames leds"]
     ) -> Float[np.ndarray, "frames leds"]:
         """Per-axis variance [m²] of every observation of a recording whose LED columns
-        are `led_ids` (positions in the camera frame [m], NaN where unseen)."""
-        dist = np.linalg.norm(positions, axis=-1)
-        th = np.zeros_like(dist) if self.angle_knots.size == 1 else theta
-        return self.variance_at(th, dist, np.arange(self.led_ids.size)[None, :])
+        are `led_ids` (positions in the camera frame [m], NaN where unseen): `variance_at`
+        as one compiled kernel over blocks of `_BLOCK` frames."""
+        n = positions.shape[0]
+        th = np.zeros(positions.shape[:2]) if self.angle_knots.size == 1 else theta
+        size = min(_BLOCK, n)
+        out = np.empty(positions.shape[:2])
+        args = (self.angle_knots, self.distance_knots, self.variance, self.led_level)
+        for a in range(0, n, size):
+            x, t = positions[a : a + size], th[a : a + size]
+            if x.shape[0] < size:  # padded: one compilation for all blocks
+                pad = size - x.shape[0]
+                x = np.concatenate([x, np.full((pad, *x.shape[1:]), np.nan)])
+                t = np.concatenate([t, np.full((pad, *t.shape[1:]), np.nan)])
+            out[a : a + size] = np.asarray(_observation_variance(x, t, *args))[: n - a]
+        return out
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able summary: the σ table [m] at the knots and the LED levels."""
@@ -112,29 +126,42 @@ class NoiseModel(eqx.Module):
         }
 
 
-def _locate(x, knots: np.ndarray):
-    """Interval index and fraction of `x` between `knots` (clamped at the ends)."""
-    x = np.asarray(x, float)
-    if knots.size == 1:
-        return np.zeros(x.shape, np.int64), np.zeros(x.shape)
-    xc = np.clip(x, knots[0], knots[-1])
-    i = np.clip(np.searchsorted(knots, xc, side="right") - 1, 0, knots.size - 2)
+def _locate(x, knots, xp=np):
+    """Interval index and fraction of `x` between `knots` (clamped at the ends), in the
+    array namespace `xp` (NumPy or `jax.numpy`)."""
+    x = xp.asarray(x, float)
+    k = knots.shape[0]
+    if k == 1:
+        return xp.zeros(x.shape, int), xp.zeros(x.shape)
+    xc = xp.clip(x, knots[0], knots[-1])
+    # the last knot at or below xc (the one before the last at the end): a comparison
+    # per knot, where a binary search over a few knots is slow in XLA
+    i = sum((xc >= knots[m]).astype(int) for m in range(1, k - 1)) + xp.zeros(x.shape, int)
     return i, (xc - knots[i]) / (knots[i + 1] - knots[i])
 
 
-def _bilinear(table, ka, kb, x, y):
-    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
-    i, u = _locate(np.nan_to_num(x), ka)
-    j, w = _locate(np.nan_to_num(y), kb)
-    i1 = np.minimum(i + 1, ka.size - 1)
-    j1 = np.minimum(j + 1, kb.size - 1)
+def _bilinear(table, ka, kb, x, y, xp=np):
+    """Bilinear interpolation of `table` `(a, b)` at (`x`, `y`) between the knots `ka`,
+    `kb` (end values beyond them; NaN where `x` or `y` is not finite)."""
+    x, y = xp.broadcast_arrays(xp.asarray(x, float), xp.asarray(y, float))
+    i, u = _locate(xp.nan_to_num(x), ka, xp)
+    j, w = _locate(xp.nan_to_num(y), kb, xp)
+    i1 = xp.minimum(i + 1, ka.shape[0] - 1)
+    j1 = xp.minimum(j + 1, kb.shape[0] - 1)
     v = (
         (1 - u) * (1 - w) * table[i, j]
         + u * (1 - w) * table[i1, j]
         + (1 - u) * w * table[i, j1]
         + u * w * table[i1, j1]
     )
-    return np.where(np.isfinite(x) & np.isfinite(y), v, np.nan)
+    return xp.where(xp.isfinite(x) & xp.isfinite(y), v, xp.nan)
+
+
+@jax.jit
+def _observation_variance(positions, theta, angle_knots, distance_knots, table, level):
+    """`NoiseModel.observation_variance` of one block of frames (JAX)."""
+    dist = jnp.sqrt(positions[..., 0] ** 2 + positions[..., 1] ** 2 + positions[..., 2] ** 2)
+    return _bilinear(table, angle_knots, distance_knots, theta, dist, jnp) * level
 
 
 def _hats(x: np.ndarray, knots: np.ndarray) -> np.ndarray:
@@ -300,10 +327,4 @@ def noise_and_variance(
     model = estimate_noise(positions, theta if have_angle else None, led_ids)
     th = np.asarray(theta, float) if have_angle else np.zeros(positions.shape[:2])
     fill = float(np.nanmedian(th)) if have_angle else 0.0
-    var = np.empty(positions.shape[:2])
-    for a in range(0, positions.shape[0], 100_000):
-        sl = slice(a, a + 100_000)
-        var[sl] = model.observation_variance(
-            positions[sl], np.where(np.isfinite(th[sl]), th[sl], fill)
-        )
-    return model, var
+    return model, model.observation_variance(positions, np.where(np.isfinite(th), th, fill))

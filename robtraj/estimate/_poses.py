@@ -143,10 +143,10 @@ def led_emission_angles(position, quaternion_wxyz, constellation, normals):
     the camera frame, from tool poses and the constellation/normals in the tool frame."""
     return np.asarray(
         _emission_angles(
-            jnp.asarray(position),
-            jnp.asarray(np.nan_to_num(quaternion_wxyz)),
-            jnp.asarray(constellation, jnp.float64),
-            jnp.asarray(normals, jnp.float64),
+            np.asarray(position),
+            np.nan_to_num(quaternion_wxyz),
+            np.asarray(constellation, np.float64),
+            np.asarray(normals, np.float64),
         )
     )
 

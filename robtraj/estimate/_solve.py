@@ -152,6 +152,17 @@ def _placeholder(p: int) -> LeastSquares:
     return LeastSquares(z, jnp.eye(p), z, jnp.zeros(()), z, jnp.ones(p), jnp.ones(p))
 
 
+def compile_steps(ahead, solver: optx.AbstractLeastSquaresSolver, p: int):
+    """Compile `solve`'s step for `solver` and `p` parameters on `ahead`'s background
+    thread (a `robtraj.estimate._compile_ahead.CompileAhead`); returns its future."""
+
+    def compile_step():
+        state = _initial_state(solver, p)
+        _step.lower(solver, jnp.zeros(p), _placeholder(p), state).compile()
+
+    return ahead.run(compile_step)
+
+
 @eqx.filter_jit
 def _step(solver, z, problem: LeastSquares, state):
     z, state, _ = solver.step(_fn, z, problem, {}, state, frozenset())
@@ -220,7 +231,7 @@ def solve(
     A non-finite start (θ₀ or the cost there) is a `UserError`; a solve that stops
     before Optimistix's criterion held returns ``converged=False`` with the reason.
     """
-    theta0 = jnp.asarray(theta0, jnp.float64)
+    theta0 = jax.device_put(np.asarray(theta0, np.float64))
     free = np.asarray(free, bool)
     if n_residuals is not None and n_residuals < int(free.sum()):
         raise UserError(
@@ -241,8 +252,8 @@ def solve(
         b=b,
         cost=cost,
         theta0=theta0,
-        scale=jnp.asarray(column_scale(np.asarray(h)) / DIAGONAL**0.5),
-        free=jnp.asarray(free, theta0.dtype),
+        scale=jax.device_put(column_scale(np.asarray(h)) / DIAGONAL**0.5),
+        free=jax.device_put(free.astype(np.float64)),
     )
     state = _initial_state(solver, p)
     done, result, steps = False, optx.RESULTS.successful, 0

@@ -50,6 +50,7 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -67,7 +68,7 @@ from ..model import (
 )
 from ..recording import Pose, Recording
 from . import _calib_problem as cp
-from ._calib_data import CalibrationData, prepare
+from ._calib_data import CalibrationData, check, prepare
 from ._calib_init import closed_form_start, dwells, pose_pairs, robot_world_hand_eye
 from ._calib_problem import (
     BundleData,
@@ -78,9 +79,11 @@ from ._calib_problem import (
     residuals,
 )
 from ._calib_result import CalibrationResult, _pose_of, _se3, _wxyz_xyz
+from ._compile_ahead import CompileAhead, in_background
 from ._next_poses import next_poses
+from ._noise import NoiseModel
 from ._observation_noise import observation_noise
-from ._solve import normal_at, solve
+from ._solve import compile_steps, default_solver, normal_at, solve
 from ._uncertainty import covariance, effective_clusters, identifiability, robust_covariance
 
 __all__ = [
@@ -164,7 +167,8 @@ def _global_names(effects: Effects, free: tuple[str, ...]) -> list[str]:
 class _Setup:
     """A recording prepared for the engine: the observations (`data`), the problem at its
     start (`bundle`), parameter names and which ones may be dropped, the normal matrix
-    at the start (`h0`; `normal0` the engine's ``(H, b, cost)`` there)."""
+    at the start (`h0`; `normal0` the engine's ``(H, b, cost)`` there), the clusters of
+    the robust covariance and the noise model behind the weights."""
 
     data: CalibrationData
     bundle: BundleData
@@ -182,6 +186,10 @@ class _Setup:
     h0: np.ndarray
     n_residuals: int
     normal0: tuple | None
+    clusters: tuple[np.ndarray, int]  # cluster of every chunked frame, their count
+    noise: NoiseModel | None  # the recording's noise model where it gave the weights
+    noise_info: dict[str, Any]
+    ahead: CompileAhead  # the fit's later kernels, compiling on a background thread
 
 
 def _solve_pass(
@@ -189,7 +197,7 @@ def _solve_pass(
 ):
     """One engine solve from `bundle`'s current values (`start`: the normal equations
     there, if known); returns the re-centred bundle."""
-    say(f"{label}: {type(solver).__name__ if solver else 'Levenberg–Marquardt'}")
+    say(label)
     sol = solve(
         bundle_normal,
         bundle,
@@ -200,7 +208,7 @@ def _solve_pass(
         max_steps=max_iter,
         start=start,
     )
-    problem = cp.recentre(bundle.problem, sol.theta, np.asarray(bundle.basis))
+    problem = cp.recentre(bundle.problem, sol.theta, bundle.basis)
     return dataclasses.replace(bundle, problem=problem), sol
 
 
@@ -264,23 +272,24 @@ def fit(
     say = progress or (lambda _msg: None)
     if robust is not None and robust not in ROBUST:
         raise UserError(f"unknown robust loss {robust!r} (choose from {', '.join(ROBUST)})")
-    noise_info: dict[str, Any] = {"kind": "user_weights"}
-    noise = None
-    if weights is None:
-        say("noise model of the recording")
-        try:
-            noise, var = observation_noise(recording)
-        except UserError as err:
-            noise_info = {"kind": "uniform", "reason": str(err)}
-        else:
-            weights, noise_info = np.where(np.isfinite(var), 1.0 / var, 0.0), noise.to_dict()
-            del var
     bad = [h for h in hold if h not in HOLDABLE]
     if bad:
         raise UserError(f"cannot hold {', '.join(bad)} (choose from {', '.join(HOLDABLE)})")
+    method = type(solver).__name__ if solver else "Levenberg–Marquardt"
+    solver = solver or default_solver()
     st = _setup(
-        recording, estimate, init, weights, chunk, say, space=space, motion=motion_threshold
+        recording,
+        estimate,
+        init,
+        weights,
+        chunk,
+        say,
+        space=space,
+        motion=motion_threshold,
+        solver=solver,
+        clustered=robust_sigma,
     )
+    noise, noise_info = st.noise, st.noise_info
     data, q, free, w_user = st.data, st.q, st.free, st.w_user
     held = np.array([n.split(".", 1)[0] in hold for n in st.names_theta])
     if not np.any(st.has_column & st.in_model & ~held):
@@ -301,7 +310,9 @@ def fit(
     label = {"user_weights": "fit", "uniform": "uniformly weighted fit"}.get(
         noise_info["kind"], "noise-weighted fit"
     )
-    bundle, sol = _solve_pass(st, st.bundle, free_mask, solver, max_iter, say, label, st.normal0)
+    bundle, sol = _solve_pass(
+        st, st.bundle, free_mask, solver, max_iter, say, f"{label}: {method}", st.normal0
+    )
     sols = [sol]
     w_noise = w
     if robust is not None:
@@ -320,13 +331,29 @@ def fit(
             del sq, u, rho
             bundle = dataclasses.replace(bundle, chunks=cp.with_weights(bundle.chunks, w))
             bundle, sol = _solve_pass(
-                st, bundle, free_mask, solver, max_iter, say, f"robust ({robust}) pass {it + 1}"
+                st,
+                bundle,
+                free_mask,
+                solver,
+                max_iter,
+                say,
+                f"robust ({robust}) pass {it + 1}: {method}",
             )
             sols.append(sol)
             if sol.steps <= 2:
                 break
 
     say("covariance and residual statistics")
+    st.ahead.wait()
+    # the normal equations at the estimate (per cluster for the robust covariance) on a
+    # background thread, while the residuals are summarised here
+    p_theta = jnp.zeros(len(st.names_theta))
+    cluster, n_clusters = st.clusters
+    if robust_sigma:
+        padded = _padded_clusters(n_clusters)
+        final = in_background(bundle_normal_clustered, p_theta, bundle, cluster, padded)
+    else:
+        final = in_background(normal_at, bundle_normal, p_theta, bundle)
     d, theta, sq = residual_stats(bundle)
     seen_angle = float(np.quantile(theta[used], 0.99)) if data.has_normals else np.pi
     del theta
@@ -336,21 +363,12 @@ def fit(
     del d
     unused_frame, unused_led = np.nonzero(~used)
     full_res[data.frame[unused_frame], unused_led] = np.nan
-    cluster, n_clusters = _clusters(data, bundle.chunks)
     if robust_sigma:
-        # the cluster count is static to the kernel: padded so that recordings of one
-        # shape share a compilation; the empty clusters are cut before the jackknife
-        padded = -(-n_clusters // 64) * 64
-        h, _, chi2, cluster_h, scores = (
-            np.asarray(x)
-            for x in bundle_normal_clustered(
-                jnp.zeros(len(st.names_theta)), bundle, jnp.asarray(cluster), padded
-            )
-        )
+        h, _, chi2, cluster_h, scores = (np.asarray(x) for x in final.result())
         keep = np.r_[np.arange(n_clusters), np.arange(padded, cluster_h.shape[0])]
         cluster_h, scores = cluster_h[keep], scores[keep]
     else:
-        h, _, chi2 = (np.asarray(x) for x in _normal_at_zero(bundle, len(st.names_theta)))
+        h, _, chi2 = (np.asarray(x) for x in final.result())
     chi2 = float(chi2)
     n_res = 3 * int(used.sum()) + (6 * int(bundle.probe.probed.shape[0]) if bundle.probe else 0)
     cov_unit, rank = covariance(h, free_mask)
@@ -541,6 +559,13 @@ def _clusters(data: CalibrationData, chunks: Frames) -> tuple[np.ndarray, int]:
     return out.reshape(k, size), int(ids.max()) + 1
 
 
+def _padded_clusters(n_clusters: int) -> int:
+    """The cluster count as a static shape of the clustered kernel: padded so that
+    recordings of one shape share a compilation (the empty clusters are cut before the
+    jackknife)."""
+    return -(-n_clusters // 64) * 64
+
+
 def _normal_at_zero(bundle: BundleData, p: int):
     return normal_at(bundle_normal, jnp.zeros(p), bundle)
 
@@ -640,10 +665,16 @@ def _setup(
     space=(),
     motion=None,
     start_only=False,
+    solver=None,
+    clustered=False,
 ) -> _Setup:
-    """Observations, closed-form start and problem of one fit. `start_only`: the normal
-    equations are wanted at the start alone (no step is taken): LED-level effects at
-    zero then take the rigid path even when free."""
+    """Observations, weights, closed-form start and problem of one fit. `weights` None:
+    from the recording's noise model (uniform where it cannot be estimated) with
+    `normal`, else uniform. `start_only`: the normal equations are wanted at the start
+    alone (no step is taken): LED-level effects at zero then take the rigid path even
+    when free. With `normal`, the kernels of the fit (its normal equations; the steps of
+    `solver`; the clustered pass with `clustered`) are compiled on a background thread
+    while the weights and the start are computed (`_compile_ahead`)."""
     estimate = tuple(dict.fromkeys(estimate))
     _check_names((*estimate, *space))
     order = known_effects()
@@ -661,8 +692,17 @@ def _setup(
         motion = MOTION_THRESHOLD if init is None else init.motion_threshold
     if not (np.isfinite(motion) and motion > 0):
         raise UserError(f"the motion threshold must be a positive speed [rad/s], not {motion}")
+    checked = check(recording, time_offset=tau0, constellation=reference)
+    noise_job = None
+    if weights is None and normal:
+        say("noise model of the recording")
+        noise_job = in_background(observation_noise, recording)
     data = prepare(
-        recording, time_offset=tau0, constellation=reference, motion_threshold=float(motion)
+        recording,
+        time_offset=tau0,
+        constellation=reference,
+        motion_threshold=float(motion),
+        checked=checked,
     )
     if start is not None:
         col = {int(i): k for k, i in enumerate(recording.tool.led_ids)}
@@ -676,21 +716,8 @@ def _setup(
     if init is not None:
         for k, v in init.effects.items():
             effects0 = effects0.with_value(k, v)
-    if weights is not None:
-        w_user = _user_weights(recording, data, weights)
-    else:
-        w_user = data.seen.astype(float)
 
-    # closed-form start
-    say(f"{data.n_frames} frames, {data.n_leds} LEDs: closed-form initialisation")
-    if init is None:
-        cft, bff, _ = pose_pairs(data, effects0, data.reference)
-        z, x = closed_form_start(cft, bff, data.nominal_flange_from_tool)
-    else:
-        z, x = _wxyz_xyz(init.camera_from_base), _wxyz_xyz(init.flange_from_tool)
-    initial = {"camera_from_base": _pose_of(z), "flange_from_tool": _pose_of(x)}
-
-    # problem
+    # the problem's structure, with the start poses still to come
     probe = cp.probe_observations(recording.probe, data, tau0)
     gauge = "probe" if probe is not None else "reference_constellation"
     basis = cp.gauge_basis(data.reference, data.led_seen, probe is not None)
@@ -699,13 +726,13 @@ def _setup(
     )
     problem = BundleProblem(
         robot=data.robot,
-        camera_from_base=jnp.asarray(z),
-        flange_from_tool=jnp.asarray(x),
-        constellation=jnp.asarray(start),
-        normals=jnp.asarray(data.normals),
+        camera_from_base=jnp.asarray(jaxlie.SE3.identity().wxyz_xyz),
+        flange_from_tool=jnp.asarray(jaxlie.SE3.identity().wxyz_xyz),
+        constellation=jax.device_put(np.asarray(start, float)),
+        normals=jax.device_put(data.normals),
         effects=effects0,
-        log_time=jnp.asarray(data.log_time),
-        joints=jnp.asarray(data.joints),
+        log_time=jax.device_put(data.log_time),
+        joints=jax.device_put(data.joints),
         free=free,
         kinematic=kinematic,
         # LED-level effects at zero move no LED: the rigid path serves while none is
@@ -718,17 +745,69 @@ def _setup(
         ),
         led_columns=start_only,
     )
-    chunks = cp.chunked_frames(data, np.sqrt(w_user), cp.chunk_size(data.n_frames, chunk))
-    # the observations live on in `chunks`; the frame-major copy is not needed again
-    data = dataclasses.replace(data, measured=np.zeros((0, data.n_leds, 3)))
-    if not kinematic:
-        fl = cp.fixed_flange_poses(data.robot, effects0, problem.log_time, problem.joints, chunks)
-        chunks = dataclasses.replace(chunks, base_from_flange=fl)
-    bundle = BundleData(problem=problem, chunks=chunks, basis=jnp.asarray(basis), probe=probe)
+    chunks = cp.chunked_frames(data, data.seen.astype(float), cp.chunk_size(data.n_frames, chunk))
+    clusters = _clusters(data, chunks)
     gnames = _global_names(effects0, free)
     q = len(gnames)
-
     names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
+    basis_j = jax.device_put(basis)
+    bundle = BundleData(problem=problem, chunks=chunks, basis=basis_j, probe=probe)
+    ahead = CompileAhead()
+    flange = None  # base←flange per frame: the closed-form start's, the rigid path's
+    if init is None or not kinematic:
+        flange = ahead.run(
+            cp.fixed_flange_poses, data.robot, effects0, problem.log_time, problem.joints, chunks
+        )
+    first = []  # what the start and the solve need; the rest compiles meanwhile
+    if normal:
+        theta0 = jnp.zeros(len(names_theta))
+        first.append(ahead.submit(normal_at, bundle_normal, theta0, bundle))
+    if normal and solver is not None:
+        first.append(compile_steps(ahead, solver, len(names_theta)))
+        ahead.submit(cp.evaluate, jnp.zeros(q), problem.constellation, problem, chunks)
+        if clustered:
+            padded = _padded_clusters(clusters[1])
+            ahead.submit(bundle_normal_clustered, theta0, bundle, clusters[0], padded)
+
+    # closed-form start (while the noise model is estimated)
+    say(f"{data.n_frames} frames, {data.n_leds} LEDs: closed-form initialisation")
+    if init is None:
+        frame_flange = np.asarray(flange.result()).reshape(-1, 7)[: data.n_frames]
+        cft, bff, _ = pose_pairs(data, frame_flange, data.reference)
+        z, x = closed_form_start(cft, bff, data.nominal_flange_from_tool)
+    else:
+        z, x = _wxyz_xyz(init.camera_from_base), _wxyz_xyz(init.flange_from_tool)
+    initial = {"camera_from_base": _pose_of(z), "flange_from_tool": _pose_of(x)}
+    # the observations live on in `chunks`; the frame-major copy is not needed again
+    data = dataclasses.replace(data, measured=np.zeros((0, data.n_leds, 3)))
+
+    # weights
+    noise, noise_info = None, {"kind": "user_weights"}
+    if noise_job is not None:
+        try:
+            noise, var = noise_job.result()
+        except UserError as err:
+            noise_info = {"kind": "uniform", "reason": str(err)}
+        else:
+            weights, noise_info = np.where(np.isfinite(var), 1.0 / var, 0.0), noise.to_dict()
+            del var
+    if weights is not None:
+        w_user = _user_weights(recording, data, weights)
+    else:
+        w_user = data.seen.astype(float)
+
+    # problem
+    problem = eqx.tree_at(
+        lambda pr: (pr.camera_from_base, pr.flange_from_tool),
+        problem,
+        (jax.device_put(z), jax.device_put(x)),
+    )
+    chunks = cp.with_weights(chunks, w_user)
+    if not kinematic:
+        chunks = dataclasses.replace(chunks, base_from_flange=flange.result())
+    bundle = BundleData(problem=problem, chunks=chunks, basis=basis_j, probe=probe)
+    ahead.wait(*first)
+
     held = set(free) - set(estimated)
     redundant = set(redundant_link_parameters(data.robot))
     in_model = np.array([_effect_of(n) not in held and n not in redundant for n in names_theta])
@@ -755,6 +834,10 @@ def _setup(
         n_residuals=n_res,
         h0=h0,
         normal0=normal0,
+        clusters=clusters,
+        noise=noise,
+        noise_info=noise_info,
+        ahead=ahead,
     )
 
 

@@ -19,5 +19,6 @@ from ._quaternion import (
     rotation_rows as rotation_rows,
 )
 from ._rotation_angle import rotation_angle as rotation_angle
+from ._se3_jacobian import se3_right_jacobian as se3_right_jacobian
 from ._slerp import slerp as slerp
 from ._windowed import windowed_moments as windowed_moments
