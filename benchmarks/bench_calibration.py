@@ -64,16 +64,12 @@ from scipy.optimize import least_squares
 from robtraj import read_recording
 from robtraj.estimate import calibration as C
 from robtraj.estimate import _calib_problem as cp
-from robtraj.model import flange_poses, interpolate_joints
 rec = read_recording(sys.argv[1])
 res = C.fit(rec)  # for the noise weights and the optimum to compare with
 t0 = time.perf_counter()
 data = C.prepare(rec)
 w = res.weights[data.frame]
-q = interpolate_joints(*map(jnp.asarray, (data.log_time, data.joints, data.time)))
-fl = flange_poses(data.robot, C.Effects.zeros(6), q, jnp.asarray(data.direction),
-                  jnp.asarray(data.moving)).wxyz_xyz
-cft, bff, _ = C.pose_pairs(data, np.asarray(fl), data.reference)
+cft, bff, _ = C.pose_pairs(data, C.Effects.zeros(6), data.reference)
 z, x = C.robot_world_hand_eye(cft, bff)
 basis = cp.gauge_basis(data.reference, data.led_seen, False)
 basis = basis[:, np.any(basis != 0, axis=0)]

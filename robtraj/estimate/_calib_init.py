@@ -6,8 +6,7 @@
    poses, up to `max_moving` single moving frames (evenly spread) are added.
 2. Tool poses in the camera frame: weighted Procrustes of the reference constellation
    to each group's LED positions (`robtraj.jax_ops.weighted_procrustes`).
-3. Flange poses: the forward kinematics of every frame (nominal robot + fixed effects,
-   computed by the caller), taken at the group's middle frame.
+3. Flange poses: forward kinematics of the group's joints (nominal robot + fixed effects).
 4. Robot-world/hand-eye ``camera_from_tool_i = Z · base_from_flange_i · X`` solved by
    Shah's closed form (Kronecker null space of the rotation equations, then
    orthonormalisation, then linear least squares for the translations); for a run whose
@@ -23,6 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import UserError
+from ..model import Effects, flange_poses
 from ._calib_data import CalibrationData
 
 _STATIC_SPEED = 1e-4  # [rad/s] every joint slower than this: the robot stands still
@@ -91,18 +91,21 @@ def _procrustes(model, measured, weight):
     return weighted_procrustes(model, jnp.where(weight[..., None] > 0, measured, jnp.nan), weight)
 
 
+@jax.jit
+def _flange(robot, effects, q):
+    return flange_poses(robot, effects, q, jnp.ones_like(q)).wxyz_xyz
+
+
 def pose_pairs(
     data: CalibrationData,
-    base_from_flange: np.ndarray,
+    effects: Effects,
     constellation: np.ndarray,
     *,
     min_dwell: float = 0.2,
     max_moving: int = 60,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """``(camera_from_tool (G, 7), base_from_flange (G, 7), n_dwells)`` as jaxlie
-    ``wxyz_xyz`` for the groups (static dwells first, then moving frames if needed), from
-    the flange pose of every frame of `data` `(n, 7)` (a dwell's is that of its middle
-    frame: the robot stands still) and the measured LED positions."""
+    ``wxyz_xyz`` for the groups (static dwells first, then moving frames if needed)."""
     groups_static = dwells(data, min_dwell)
     moving = np.ones(data.n_frames, bool)
     for d in groups_static:
@@ -146,14 +149,15 @@ def pose_pairs(
         [np.asarray(fit.quaternion_wxyz), np.asarray(fit.position)], -1
     )[:n_groups]
     q = np.array(q_groups)
-    flange = np.asarray(base_from_flange)[[g[g.size // 2] for g in groups]]
-    camera_from_tool, flange = camera_from_tool[valid], flange[valid]
+    q_pad = np.concatenate([q, np.repeat(q[:1], pad, 0)])
+    base_from_flange = np.asarray(_flange(data.robot, effects, q_pad))[:n_groups]
+    camera_from_tool, base_from_flange = camera_from_tool[valid], base_from_flange[valid]
     if _distinct(q[valid]) < 3:
         raise UserError(
             "too few distinct robot poses with the tool seen: calibration needs at least 3 "
             "poses, rotated about two different axes to determine every parameter"
         )
-    return camera_from_tool, flange, len(groups_static)
+    return camera_from_tool, base_from_flange, len(groups_static)
 
 
 def closed_form_start(

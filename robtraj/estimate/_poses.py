@@ -23,7 +23,7 @@ from ..jax_ops import (
     rotation_angle,
     weighted_procrustes,
 )
-from ..recording import Recording
+from ..recording import Recording, finite_points
 from ._noise import noise_and_variance
 from ._registration import Registration, _quat_matrix, register_leds
 from ._static import static_segments
@@ -181,7 +181,10 @@ def _select(rec: Recording, leds, reference_leds):
     if missing.size:
         raise UserError(f"LEDs {missing.tolist()} are not in the recording")
     cols = np.array([np.flatnonzero(all_ids == i)[0] for i in leds])
-    positions = np.asarray(rec.positions[:, cols], np.float64)
+    if np.array_equal(cols, np.arange(all_ids.size)):
+        positions = np.asarray(rec.positions, np.float64)
+    else:
+        positions = np.asarray(rec.positions[:, cols], np.float64)
     nominal = normals = None
     if tool is not None and tool.constellation is not None:
         tool_ids = np.asarray(tool.led_ids)
@@ -342,7 +345,7 @@ def estimate_poses(
     n, m = positions.shape[:2]
     if n < 2:
         raise UserError("the recording has fewer than two frames")
-    seen = np.all(np.isfinite(positions), axis=-1)
+    seen = finite_points(positions)
     if seen.sum(1).max(initial=0) < 3:
         raise UserError("no frame has three or more LEDs seen: no pose can be computed")
     window = default_window(rec.time) if window is None else int(window)

@@ -654,6 +654,70 @@ def _check_names(names) -> None:
         )
 
 
+def _structure(
+    ahead: CompileAhead,
+    data: CalibrationData,
+    effects0: Effects,
+    names: tuple[tuple[str, ...], tuple[str, ...], bool],
+    sizes: tuple[int, int],
+    start: np.ndarray,
+    basis: np.ndarray,
+    probe,
+    chunk: int,
+    solver,
+    normal: bool,
+    clustered: bool,
+):
+    """The bundle problem of `_setup` at placeholder poses and uniform weights (its
+    shapes and static parts are those of the fit), the clusters of the robust covariance
+    and the compilations of the fit's kernels (queued on `ahead`, after this): returns
+    ``(bundle, clusters, futures of the kernels the start and the solve need)``."""
+    free, estimated, start_only = names
+    q, p = sizes  # global parameters, all of θ
+    kinematic = any(cp.is_kinematic(n) for n in free) or any(
+        cp.is_kinematic(n) for n in effects0.terms
+    )
+    identity = jax.device_put(np.array([1.0, 0, 0, 0, 0, 0, 0]))
+    problem = BundleProblem(
+        robot=data.robot,
+        camera_from_base=identity,
+        flange_from_tool=identity,
+        constellation=jax.device_put(np.asarray(start, float)),
+        normals=jax.device_put(data.normals),
+        effects=effects0,
+        log_time=jax.device_put(data.log_time),
+        joints=jax.device_put(data.joints),
+        free=free,
+        kinematic=kinematic,
+        # LED-level effects at zero move no LED: the rigid path serves while none is
+        # estimated (a step would move them), or for the normal equations at the start
+        rigid_leds=(start_only or not any(cp.is_led_level(n) for n in estimated))
+        and all(
+            float(np.max(np.abs(effects0.get(n)))) == 0.0
+            for n in (*cp.LED_EFFECTS, *effects0.terms)
+            if cp.is_led_level(n)
+        ),
+        led_columns=start_only,
+    )
+    chunks = cp.chunked_frames(data, data.seen.astype(float), chunk)
+    if not kinematic:
+        fl = cp.fixed_flange_poses(data.robot, effects0, problem.log_time, problem.joints, chunks)
+        chunks = dataclasses.replace(chunks, base_from_flange=fl)
+    clusters = _clusters(data, chunks)
+    bundle = BundleData(problem=problem, chunks=chunks, basis=jax.device_put(basis), probe=probe)
+    first = []
+    if normal:
+        theta0 = jnp.zeros(p)
+        first.append(ahead.submit(normal_at, bundle_normal, theta0, bundle))
+    if solver is not None:
+        first.append(compile_steps(ahead, solver, p))
+        ahead.submit(cp.evaluate, jnp.zeros(q), problem.constellation, problem, chunks)
+        if clustered:
+            padded = _padded_clusters(clusters[1])
+            ahead.submit(bundle_normal_clustered, theta0, bundle, clusters[0], padded)
+    return bundle, clusters, first
+
+
 def _setup(
     recording,
     estimate,
@@ -717,69 +781,38 @@ def _setup(
         for k, v in init.effects.items():
             effects0 = effects0.with_value(k, v)
 
-    # the problem's structure, with the start poses still to come
+    # the problem's structure and its kernels, on the compiling thread meanwhile
     probe = cp.probe_observations(recording.probe, data, tau0)
     gauge = "probe" if probe is not None else "reference_constellation"
     basis = cp.gauge_basis(data.reference, data.led_seen, probe is not None)
-    kinematic = any(cp.is_kinematic(n) for n in free) or any(
-        cp.is_kinematic(n) for n in effects0.terms
-    )
-    problem = BundleProblem(
-        robot=data.robot,
-        camera_from_base=jnp.asarray(jaxlie.SE3.identity().wxyz_xyz),
-        flange_from_tool=jnp.asarray(jaxlie.SE3.identity().wxyz_xyz),
-        constellation=jax.device_put(np.asarray(start, float)),
-        normals=jax.device_put(data.normals),
-        effects=effects0,
-        log_time=jax.device_put(data.log_time),
-        joints=jax.device_put(data.joints),
-        free=free,
-        kinematic=kinematic,
-        # LED-level effects at zero move no LED: the rigid path serves while none is
-        # estimated (a step would move them), or for the normal equations at the start
-        rigid_leds=(start_only or not any(cp.is_led_level(n) for n in estimated))
-        and all(
-            float(np.max(np.abs(effects0.get(n)))) == 0.0
-            for n in (*cp.LED_EFFECTS, *effects0.terms)
-            if cp.is_led_level(n)
-        ),
-        led_columns=start_only,
-    )
-    chunks = cp.chunked_frames(data, data.seen.astype(float), cp.chunk_size(data.n_frames, chunk))
-    clusters = _clusters(data, chunks)
     gnames = _global_names(effects0, free)
     q = len(gnames)
     names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
-    basis_j = jax.device_put(basis)
-    bundle = BundleData(problem=problem, chunks=chunks, basis=basis_j, probe=probe)
     ahead = CompileAhead()
-    flange = None  # base←flange per frame: the closed-form start's, the rigid path's
-    if init is None or not kinematic:
-        flange = ahead.run(
-            cp.fixed_flange_poses, data.robot, effects0, problem.log_time, problem.joints, chunks
-        )
-    first = []  # what the start and the solve need; the rest compiles meanwhile
-    if normal:
-        theta0 = jnp.zeros(len(names_theta))
-        first.append(ahead.submit(normal_at, bundle_normal, theta0, bundle))
-    if normal and solver is not None:
-        first.append(compile_steps(ahead, solver, len(names_theta)))
-        ahead.submit(cp.evaluate, jnp.zeros(q), problem.constellation, problem, chunks)
-        if clustered:
-            padded = _padded_clusters(clusters[1])
-            ahead.submit(bundle_normal_clustered, theta0, bundle, clusters[0], padded)
+    structure = ahead.run(
+        _structure,
+        ahead,
+        data,
+        effects0,
+        (free, estimated, start_only),
+        (q, len(names_theta)),
+        start,
+        basis,
+        probe,
+        cp.chunk_size(data.n_frames, chunk),
+        solver if normal else None,
+        normal,
+        clustered,
+    )
 
     # closed-form start (while the noise model is estimated)
     say(f"{data.n_frames} frames, {data.n_leds} LEDs: closed-form initialisation")
     if init is None:
-        frame_flange = np.asarray(flange.result()).reshape(-1, 7)[: data.n_frames]
-        cft, bff, _ = pose_pairs(data, frame_flange, data.reference)
+        cft, bff, _ = pose_pairs(data, effects0, data.reference)
         z, x = closed_form_start(cft, bff, data.nominal_flange_from_tool)
     else:
         z, x = _wxyz_xyz(init.camera_from_base), _wxyz_xyz(init.flange_from_tool)
     initial = {"camera_from_base": _pose_of(z), "flange_from_tool": _pose_of(x)}
-    # the observations live on in `chunks`; the frame-major copy is not needed again
-    data = dataclasses.replace(data, measured=np.zeros((0, data.n_leds, 3)))
 
     # weights
     noise, noise_info = None, {"kind": "user_weights"}
@@ -797,15 +830,14 @@ def _setup(
         w_user = data.seen.astype(float)
 
     # problem
-    problem = eqx.tree_at(
-        lambda pr: (pr.camera_from_base, pr.flange_from_tool),
-        problem,
-        (jax.device_put(z), jax.device_put(x)),
+    bundle, clusters, first = structure.result()
+    # the observations live on in the chunks; the frame-major copy is not needed again
+    data = dataclasses.replace(data, measured=np.zeros((0, data.n_leds, 3)))
+    bundle = eqx.tree_at(
+        lambda b: (b.problem.camera_from_base, b.problem.flange_from_tool, b.chunks),
+        bundle,
+        (jax.device_put(z), jax.device_put(x), cp.with_weights(bundle.chunks, w_user)),
     )
-    chunks = cp.with_weights(chunks, w_user)
-    if not kinematic:
-        chunks = dataclasses.replace(chunks, base_from_flange=flange.result())
-    bundle = BundleData(problem=problem, chunks=chunks, basis=basis_j, probe=probe)
     ahead.wait(*first)
 
     held = set(free) - set(estimated)
