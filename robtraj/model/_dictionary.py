@@ -265,9 +265,7 @@ def register_effect(
         raise UserError("a term needs at least one coefficient")
     if precision is not None:
         precision = np.asarray(precision, float)
-        if precision.shape != (len(comps), len(comps)) or not np.allclose(
-            precision, precision.T
-        ):
+        if precision.shape != (len(comps), len(comps)) or not np.allclose(precision, precision.T):
             raise UserError(
                 f"precision must be a symmetric {len(comps)}×{len(comps)} matrix, "
                 f"got shape {precision.shape}"
