@@ -238,6 +238,7 @@ def solve(
     max_steps: int = 50,
     start: tuple | None = None,
     size: int | None = None,
+    damping: float | None = None,
 ) -> Solution:
     """Minimise ``cost(θ)`` over the `free` entries of θ, starting at `theta0`.
 
@@ -251,6 +252,12 @@ def solve(
     - `size`: the size of the solver's variable, at least the number of free entries
       (default `padded_size` of it): the solver works on the free block of the normal
       equations only, padded to this size; one compilation of its step per size.
+    - `damping`: the initial damping of a trust-region solver's step, relative to 1 =
+      1/`DIAGONAL` of the scaled diagonal (Optimistix's start). Smaller starts closer to
+      Gauss–Newton: for a problem nearly linear from its start (an angle error map of
+      hundreds of knots, from zero), whose determined directions span many decades of
+      curvature, the damping would otherwise hold the weakly determined ones back for
+      several steps while the trust region widens.
 
     Optimistix's own ``init``/``step``/``terminate`` run the algorithm; between steps the
     normal equations are evaluated at the point the solver asks for (compiled once, apart
@@ -292,6 +299,8 @@ def solve(
         free=jax.device_put(on),
     )
     state = _initial_state(solver, n)
+    if damping is not None:
+        state = eqx.tree_at(lambda st: st.search_state.step_size, state, jnp.asarray(1.0 / damping))
     done, result, steps = False, optx.RESULTS.successful, 0
     while steps < max_steps:
         z, state, done, result, z_eval = _step(solver, z, problem, state)

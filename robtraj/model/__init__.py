@@ -31,8 +31,10 @@ from ._effects import (
     parse_effect,
 )
 from ._joint_map import (
+    LENGTH as MAP_LENGTH,
     N_KNOTS as MAP_KNOTS,
     PRIOR_GRID as MAP_PRIOR_GRID,
+    SIGMA_F as MAP_SIGMA_F,
     active as map_active,
     precision as map_precision,
     summary as map_summary,
@@ -77,6 +79,8 @@ __all__ = [
     "Effects",
     "LIBRARY",
     "MAP_KNOTS",
+    "MAP_LENGTH",
+    "MAP_SIGMA_F",
     "MAP_PRIOR_GRID",
     "RobotModel",
     "Term",

@@ -1,0 +1,148 @@
+"""Blocked cross-validation of pose-level models inside one series, by one Gauss–Newton
+step per left-out region.
+
+The poses of a series are split into `regions` of joint space (k-means). A model's
+cross-validation error is the error of each region's poses predicted by the model fitted
+to the other regions. The fit without region g is taken as one Gauss–Newton step from
+the model's linearisation at θ (the whole series' fit, or the current model of a
+search, with a candidate's entries added at zero)::
+
+    Δ_g = (H − H_g + Λ)⁻¹ (b − b_g − Λc)      (on the free entries)
+
+with ``H, b`` the weighted normal equations of the series, ``H_g, b_g`` those of region
+g, Λ the prior of the terms that carry one and c their values; the held-out residual is
+``r + J·Δ_g`` on region g's poses. The pose model is nearly linear in its corrections
+(tens of µrad and µm on a metre-sized arm), so the step is the refit to well below the
+errors compared (checked against refits in `tests/analysis/test_real_ur10.py`); it
+costs one pass over the poses for every candidate of a round and every left-out region,
+where refits would cost a fit each.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+
+from ._pose_fit import _OFFSET, N_PARAMS, PoseData, group_terms
+from ._pose_normal import map_jvp
+
+
+@dataclasses.dataclass(frozen=True)
+class Linearisation:
+    """A series' normal equations at θ, in total and per region, and what the held-out
+    predictions need: `h`, `b` `(P, P)`, `(P,)` (weighted data, no prior), `h_g`, `b_g`
+    per region, `cost` ``rᵀWr``, the unweighted residual `r` `(N, 6)` (position [m],
+    rotation vector [rad]), the dense Jacobian `j` `(N, 6, N_PARAMS)`, the maps' active
+    knots and every pose's region `label`."""
+
+    theta: np.ndarray
+    label: np.ndarray
+    h: np.ndarray
+    b: np.ndarray
+    cost: float
+    h_g: np.ndarray
+    b_g: np.ndarray
+    r: np.ndarray
+    j: np.ndarray
+    map_index: np.ndarray
+    map_weight: np.ndarray
+
+    @property
+    def n_regions(self) -> int:
+        return int(self.h_g.shape[0])
+
+
+def linearise(theta: np.ndarray, data: PoseData, label: np.ndarray) -> Linearisation:
+    """The linearisation of the pose model of `data` at `theta`, per region `label`."""
+    g = int(label.max()) + 1
+    h_g, b_g, c_g, r, j = (
+        np.asarray(a) for a in group_terms(jnp.asarray(theta), data, jnp.asarray(label), g)
+    )
+    return Linearisation(
+        theta=np.asarray(theta, float),
+        label=np.asarray(label),
+        h=h_g.sum(0),
+        b=b_g.sum(0),
+        cost=float(c_g.sum()),
+        h_g=h_g,
+        b_g=b_g,
+        r=r,
+        j=j,
+        map_index=np.asarray(data.map_index),
+        map_weight=np.asarray(data.map_weight),
+    )
+
+
+def posterior(lin: Linearisation, prior: np.ndarray | None):
+    """``(H + Λ, b − Λθ)``: the normal equations with the prior `prior` `(P, P)` (dense
+    over θ, or None)."""
+    if prior is None:
+        return lin.h, lin.b
+    return lin.h + prior, lin.b - prior @ lin.theta
+
+
+def step(h: np.ndarray, b: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """``H⁻¹b`` on the `free` entries (zero elsewhere): Cholesky of the column-scaled
+    block, or its pseudo-inverse where that is not positive definite."""
+    idx = np.flatnonzero(free)
+    out = np.zeros(h.shape[-1])
+    if not idx.size:
+        return out
+    a = h[np.ix_(idx, idx)]
+    d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
+    a = a / np.outer(d, d)
+    rhs = b[idx] / d
+    try:
+        x = scipy.linalg.cho_solve(scipy.linalg.cho_factor(a, check_finite=False), rhs)
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(a, rhs, rcond=1e-10)[0]
+    out[idx] = x / d
+    return out
+
+
+def region_steps(lin: Linearisation, free: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
+    """`(G, P)`: the Gauss–Newton step from `lin.theta` of the fit without each region
+    (module docstring), on the `free` entries."""
+    h, b = posterior(lin, prior)
+    return np.stack([step(h - lin.h_g[g], b - lin.b_g[g], free) for g in range(lin.n_regions)])
+
+
+def held_out(lin: Linearisation, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position error [m] and rotation angle [rad] of every pose predicted with its region
+    left out (`steps` from `region_steps`): the norms of ``r + J·Δ_{region}``."""
+    label = lin.label
+    res = lin.r + np.einsum("nkp,np->nk", lin.j, steps[label, :N_PARAMS])
+    if steps.shape[1] > N_PARAMS:
+        res = res + np.asarray(
+            map_jvp(
+                jnp.asarray(lin.j),
+                _OFFSET,
+                jnp.asarray(lin.map_index),
+                jnp.asarray(lin.map_weight),
+                jnp.asarray(steps[:, N_PARAMS:]),
+                jnp.asarray(label),
+            )
+        )
+    return np.linalg.norm(res[:, :3], axis=1), np.linalg.norm(res[:, 3:], axis=1)
+
+
+def cv_error(lin: Linearisation, free: np.ndarray, prior: np.ndarray | None) -> dict[str, float]:
+    """The blocked cross-validation error of the model with `free` entries and `prior`:
+    RMS and mean of the held-out position error [m] and rotation angle [rad]."""
+    pos, ang = held_out(lin, region_steps(lin, free, prior))
+    return {
+        "pos_rms_m": float(np.sqrt(np.mean(pos**2))),
+        "ang_rms_rad": float(np.sqrt(np.mean(ang**2))),
+        "pos_mean_m": float(np.mean(pos)),
+        "ang_mean_rad": float(np.mean(ang)),
+    }
+
+
+def gain(before: dict[str, float], after: dict[str, float]) -> float:
+    """Relative decrease of the cross-validation error: the mean of those of the position
+    RMS and the angle RMS (negative: worse)."""
+    g = [(before[k] - after[k]) / before[k] for k in ("pos_rms_m", "ang_rms_rad")]
+    return float(0.5 * (g[0] + g[1]))
