@@ -86,28 +86,75 @@ def posterior(lin: Linearisation, prior: np.ndarray | None):
 
 def step(h: np.ndarray, b: np.ndarray, free: np.ndarray) -> np.ndarray:
     """``H⁻¹b`` on the `free` entries (zero elsewhere): Cholesky of the column-scaled
-    block, or its pseudo-inverse where that is not positive definite."""
+    block, or its least-squares solution where that is not positive definite."""
     idx = np.flatnonzero(free)
     out = np.zeros(h.shape[-1])
     if not idx.size:
         return out
-    a = h[np.ix_(idx, idx)]
-    d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
-    a = a / np.outer(d, d)
-    rhs = b[idx] / d
-    try:
-        x = scipy.linalg.cho_solve(scipy.linalg.cho_factor(a, check_finite=False), rhs)
-    except np.linalg.LinAlgError:
-        x = np.linalg.lstsq(a, rhs, rcond=1e-10)[0]
-    out[idx] = x / d
+    out[idx] = _solve(h[np.ix_(idx, idx)], b[idx])
     return out
+
+
+def _solve(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
+    scaled = a / np.outer(d, d)
+    r = rhs / (d[:, None] if rhs.ndim == 2 else d)
+    try:
+        x = scipy.linalg.cho_solve(scipy.linalg.cho_factor(scaled, check_finite=False), r)
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(scaled, r, rcond=1e-10)[0]
+    return x / (d[:, None] if rhs.ndim == 2 else d)
+
+
+class RegionSystems:
+    """The systems ``(H + Λ − H_g) δ = b − Λθ − b_g`` of every left-out region g (and of
+    the whole series, last), with the free knots of the maps eliminated once: per
+    system, the Cholesky factor of the map block gives the Schur complement onto the
+    other entries, `(N_PARAMS, N_PARAMS)`, from which the step of any model that shares
+    those knots (and the prior) is a small solve. A round of the search scores every
+    candidate from one set of these."""
+
+    def __init__(self, lin: Linearisation, prior: np.ndarray | None, map_free: np.ndarray):
+        h, b = posterior(lin, prior)
+        self.map_free = np.asarray(map_free[N_PARAMS:], bool)
+        m = np.flatnonzero(self.map_free) + N_PARAMS
+        d = np.arange(N_PARAMS)
+        self.m = m
+        self.schur, self.rhs, self.y, self.ym = [], [], [], []
+        for g in range(lin.n_regions + 1):
+            a = h if g == lin.n_regions else h - lin.h_g[g]
+            r = b if g == lin.n_regions else b - lin.b_g[g]
+            if m.size:
+                both = _solve(a[np.ix_(m, m)], np.concatenate([a[np.ix_(m, d)], r[m, None]], 1))
+                ymd, ym = both[:, :-1], both[:, -1]
+                self.schur.append(a[np.ix_(d, d)] - a[np.ix_(d, m)] @ ymd)
+                self.rhs.append(r[d] - a[np.ix_(d, m)] @ ym)
+                self.y.append(ymd)
+                self.ym.append(ym)
+            else:
+                self.schur.append(a[np.ix_(d, d)])
+                self.rhs.append(r[d])
+        self.p = lin.theta.size
+
+    def steps(self, free: np.ndarray) -> np.ndarray:
+        """`(G + 1, P)`: the step on the `free` entries of each system (its map knots must
+        be those the systems eliminated)."""
+        if not np.array_equal(free[N_PARAMS:], self.map_free):
+            raise ValueError("the free map knots differ from those eliminated")
+        dense = np.flatnonzero(free[:N_PARAMS])
+        out = np.zeros((len(self.schur), self.p))
+        for g, (s, r) in enumerate(zip(self.schur, self.rhs)):
+            x = _solve(s[np.ix_(dense, dense)], r[dense]) if dense.size else np.zeros(0)
+            out[g, dense] = x
+            if self.m.size:
+                out[g, self.m] = self.ym[g] - self.y[g][:, dense] @ x
+        return out
 
 
 def region_steps(lin: Linearisation, free: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
     """`(G, P)`: the Gauss–Newton step from `lin.theta` of the fit without each region
     (module docstring), on the `free` entries."""
-    h, b = posterior(lin, prior)
-    return np.stack([step(h - lin.h_g[g], b - lin.b_g[g], free) for g in range(lin.n_regions)])
+    return RegionSystems(lin, prior, free).steps(free)[:-1]
 
 
 def held_out(lin: Linearisation, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -129,10 +176,11 @@ def held_out(lin: Linearisation, steps: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.linalg.norm(res[:, :3], axis=1), np.linalg.norm(res[:, 3:], axis=1)
 
 
-def cv_error(lin: Linearisation, free: np.ndarray, prior: np.ndarray | None) -> dict[str, float]:
-    """The blocked cross-validation error of the model with `free` entries and `prior`:
-    RMS and mean of the held-out position error [m] and rotation angle [rad]."""
-    pos, ang = held_out(lin, region_steps(lin, free, prior))
+def cv_error(lin: Linearisation, steps: np.ndarray) -> dict[str, float]:
+    """The blocked cross-validation error of the model whose left-out steps are `steps`
+    (`region_steps`, `RegionSystems.steps`): RMS and mean of the held-out position error
+    [m] and rotation angle [rad]."""
+    pos, ang = held_out(lin, steps[: lin.n_regions])
     return {
         "pos_rms_m": float(np.sqrt(np.mean(pos**2))),
         "ang_rms_rad": float(np.sqrt(np.mean(ang**2))),

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+import scipy.linalg
 from jaxtyping import Array
 from scipy.cluster.vq import kmeans2
 
@@ -24,9 +25,9 @@ from ..estimate import (
     GaussianPrior,
     covariance,
     identifiability,
+    jackknife_covariance,
     no_prior,
     normal_at,
-    robust_covariance,
     solve,
     term_prior,
 )
@@ -765,11 +766,8 @@ def fit_poses(
                 0
             ]
         )
-        droppable = np.arange(p) >= 12
-        free, ident = identifiability(
-            h0, parameter_names(maps=maps), free, droppable, prefer=FIX_PREFERENCE
-        )
-        theta = np.where(free | ~droppable, theta, 0.0)
+        free, ident = identifiable(h0, free)
+        theta = np.where(free | (np.arange(p) < 12), theta, 0.0)
     else:
         ident = {"dropped": [], "condition_number": float("nan")}
     if fixed is not None:
@@ -826,6 +824,38 @@ def fit_poses(
     )
 
 
+def marginal(h: np.ndarray, map_free: np.ndarray) -> np.ndarray:
+    """The normal matrix of θ's entries before the maps with the free map knots
+    (`map_free`, `(P,)` bool, True on knots only) marginalised: the Schur complement
+    ``H_dd − H_dm H_mm⁻¹ H_md``, `(N_PARAMS, N_PARAMS)` (`h` with the prior, which makes
+    the knots' block positive definite)."""
+    knots = np.flatnonzero(map_free[N_PARAMS:]) + N_PARAMS
+    rest = np.arange(N_PARAMS)
+    if not knots.size:
+        return h[np.ix_(rest, rest)]
+    d = np.sqrt(np.diag(h)[knots])
+    factor = scipy.linalg.cho_factor(h[np.ix_(knots, knots)] / np.outer(d, d))
+    cross = h[np.ix_(rest, knots)] / d
+    return h[np.ix_(rest, rest)] - cross @ scipy.linalg.cho_solve(factor, cross.T)
+
+
+def identifiable(
+    h: np.ndarray, free: np.ndarray, schur: np.ndarray | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """`robtraj.estimate.identifiability` of θ's effect entries (the rigid transforms are
+    never fixed; the UR10's degeneracies fixed in the order `FIX_PREFERENCE`) from the
+    normal matrix `h` with the prior. The free knots of the maps are determined by their
+    prior: they are marginalised (`marginal`; `schur` if the caller has it) and the rest
+    is analysed, a matrix of the effects' size instead of a thousand knots'."""
+    droppable = np.arange(N_PARAMS) >= 12
+    names = parameter_names()
+    if h.shape[0] == N_PARAMS:
+        return identifiability(h, names, free, droppable, prefer=FIX_PREFERENCE)
+    schur = marginal(h, free) if schur is None else schur
+    kept, ident = identifiability(schur, names, free[:N_PARAMS], droppable, prefer=FIX_PREFERENCE)
+    return np.concatenate([kept, free[N_PARAMS:]]), ident
+
+
 def _resized(theta: np.ndarray, p: int) -> np.ndarray:
     """θ in a layout of `p` entries (the map block added as zeros, or left out)."""
     out = np.zeros(p)
@@ -847,14 +877,18 @@ def regions(series: PoseSeries, n: int = REGIONS) -> np.ndarray:
 
 
 def _region_jackknife(theta, data: PoseData, free, series: PoseSeries, h) -> np.ndarray:
-    """`robust_covariance` with the poses grouped into `regions` of joint space; `h` the
-    posterior normal matrix at the estimate."""
+    """The delete-one-region jackknife (`robtraj.estimate.jackknife_covariance`, the
+    formula of `robust_covariance`) with the poses grouped into `regions` of joint
+    space, each deletion one Gauss–Newton step from the estimate, the maps' knots
+    eliminated first (`_pose_cv.RegionSystems`); `h` the posterior normal matrix."""
+    from ._pose_cv import RegionSystems, linearise
+
     label = regions(series)
-    g = int(label.max()) + 1
-    if g < 2:
+    if label.max() < 1:
         return np.full((theta.size, theta.size), np.nan)
-    hg, bg, _, _, _ = group_terms(jnp.asarray(theta), data, jnp.asarray(label), g)
-    return robust_covariance(h, free, np.asarray(hg), -np.asarray(bg))
+    lin = linearise(theta, data, label)
+    prior = data.prior.dense(theta.size) if data.prior.size else None
+    return jackknife_covariance(RegionSystems(lin, prior, free).steps(free)[:-1])
 
 
 def cross_predict(

@@ -27,6 +27,7 @@ from ._uncertainty import (
     covariance,
     effective_clusters,
     identifiability,
+    jackknife_covariance,
     robust_covariance,
 )
 from ._weighting import (
@@ -52,6 +53,7 @@ __all__ = [
     "effective_clusters",
     "default_solver",
     "identifiability",
+    "jackknife_covariance",
     "no_prior",
     "normal_at",
     "padded_size",

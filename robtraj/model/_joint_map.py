@@ -99,27 +99,40 @@ def support(q: np.ndarray, n_knots: int = N_KNOTS, margin: int = 8) -> np.ndarra
 def summary(
     coefficients: np.ndarray, q_range: tuple[float, float] | None = None
 ) -> dict[str, float]:
-    """What a map does, in numbers: RMS and peak [rad] over the knots inside `q_range`
-    [rad] (where the data are; the whole revolution if None) and the strongest
-    frequency [cycles per revolution] of the map over one revolution (ignoring its
-    mean)."""
+    """What a map does, in numbers, over the knots inside `q_range` [rad] (where the data
+    are; the whole revolution if None): RMS and peak [rad], and the frequency of its
+    strongest periodic component [cycles per revolution] — the peak of the spectrum of
+    the knots' values (mean and linear trend removed, Hann window, zero-padded), among
+    frequencies that complete at least one cycle inside the range."""
     c = np.asarray(coefficients, float)
     n = c.size
+    h = spacing(n)
     if q_range is None:
-        inside = np.ones(n, bool)
         lo, hi = -math.pi, math.pi
+        x = c
+        span = 2 * math.pi
     else:
         lo, hi = float(q_range[0]), float(q_range[1])
-        ang = knots(n)
-        # knots as the angles nearest the range's middle (the range may cross ±π)
-        mid = 0.5 * (lo + hi)
-        ang = mid + np.mod(ang - mid + math.pi, 2 * math.pi) - math.pi
-        inside = (ang >= lo - spacing(n)) & (ang <= hi + spacing(n))
-    spectrum = np.abs(np.fft.rfft(c - c.mean()))
+        span = min(hi - lo, 2 * math.pi)
+        # the knots in the range, in order of angle from `lo` (one of each knot's turns)
+        start = int(math.floor(lo / h))
+        idx = np.arange(start, start + int(math.ceil(span / h)) + 1) % n
+        x = c[idx]
+    if q_range is None:
+        y = x - x.mean()
+    else:
+        t = np.arange(x.size)
+        y = x - np.polyval(np.polyfit(t, x, 1), t) if x.size > 2 else x - x.mean()
+        y = y * np.hanning(x.size)
+    n_fft = 1 << int(math.ceil(math.log2(max(16 * x.size, 4096))))
+    spectrum = np.abs(np.fft.rfft(y, n_fft))
+    cycles = np.fft.rfftfreq(n_fft, d=h) * 2 * math.pi  # cycles per revolution
+    usable = cycles >= 2 * math.pi / span
+    cpr = float(cycles[usable][np.argmax(spectrum[usable])]) if usable.any() else 0.0
     return {
-        "rms_rad": float(np.sqrt(np.mean(c[inside] ** 2))),
-        "peak_rad": float(np.max(np.abs(c[inside]))),
-        "cycles_per_rev": int(np.argmax(spectrum[1:]) + 1) if n > 2 else 0,
+        "rms_rad": float(np.sqrt(np.mean(x**2))),
+        "peak_rad": float(np.max(np.abs(x))),
+        "cycles_per_rev": cpr,
         "range_rad": (lo, hi),
     }
 
@@ -127,13 +140,13 @@ def summary(
 def words(joint: int, coefficients: np.ndarray, q_range: tuple[float, float] | None) -> str:
     """The map of joint `joint` (1-based) in words, e.g. ``joint 2 angle error map: rms
     0.31 mrad, peak 0.65 mrad, strongest at 17 cycles/rev, over q2 ∈ [−2.40, 0.10] rad
-    (where the data are)``."""
+    (where the data are)`` (`summary`)."""
     s = summary(coefficients, q_range)
     lo, hi = s["range_rad"]
     where = "(where the data are)" if q_range is not None else "(one revolution)"
     return (
         f"joint {joint} angle error map: rms {s['rms_rad'] * 1e3:.2f} mrad, peak "
-        f"{s['peak_rad'] * 1e3:.2f} mrad, strongest at {s['cycles_per_rev']} cycles/rev, "
+        f"{s['peak_rad'] * 1e3:.2f} mrad, strongest at {s['cycles_per_rev']:.0f} cycles/rev, "
         f"over q{joint} ∈ [{_signed(lo)}, {_signed(hi)}] rad {where}"
     )
 
