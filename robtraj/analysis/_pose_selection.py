@@ -229,7 +229,9 @@ def select(
         current = fit_poses(
             series,
             estimate=tuple(named),
-            init=dataclasses.replace(current, theta=theta_step),
+            init=dataclasses.replace(
+                current, theta=_resized(theta_step, n_params(uses_maps(named)))
+            ),
             block_sigma=bsig,
             map_prior=map_prior,
             rigid=rigid,

@@ -272,7 +272,7 @@ class Workflow:
                         "fixed_unidentifiable": [
                             d["parameter"] for d in fit.identifiability["dropped"]
                         ],
-                        **({"term": _term(fit, self.data[s])} if fit.has_maps else {}),
+                        **({"term": _term(fit, self.data[s])} if fit.maps() else {}),
                     }
                 )
         return out

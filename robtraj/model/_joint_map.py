@@ -66,7 +66,7 @@ def features(q, n_knots: int = N_KNOTS):
     return jnp.maximum(0.0, 1.0 - jnp.abs(d - math.pi) / spacing(n_knots))
 
 
-def values(coefficients: np.ndarray, q: np.ndarray) -> np.ndarray:
+def values(coefficients: np.ndarray, q: np.ndarray | float) -> np.ndarray | float:
     """The map [rad] with knot values `coefficients` `(n_knots,)` at angles `q` (NumPy)."""
     c = np.asarray(coefficients, float)
     idx, w = active(np.asarray(q, float), c.size)

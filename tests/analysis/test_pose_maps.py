@@ -93,6 +93,8 @@ def test_pose_normal_equations_with_maps_are_those_of_the_pure_residual():
     lam = prior.dense(p)
     want_h = jw.T @ jw + lam
     scale = np.sqrt(np.diag(want_h))
+    # the compliance of a joint without gravity torque (joints 1 and 6): no column
+    scale = np.where(scale > 1e-9 * np.median(scale), scale, 1.0)
     np.testing.assert_allclose(
         np.asarray(h) / np.outer(scale, scale), want_h / np.outer(scale, scale), atol=1e-10
     )

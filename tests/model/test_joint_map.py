@@ -150,7 +150,7 @@ def test_a_map_in_words():
     inside = ((k - (-2.4)) % (2 * np.pi)) <= 2.5
     np.testing.assert_allclose(s["rms_rad"], np.sqrt(np.mean(c[inside] ** 2)), rtol=0.05)
     words = map_words(2, c, (-2.4, 0.1))
-    assert words.startswith("joint 2 angle error map: rms 0.3")
+    assert words.startswith("joint 2 angle error map: rms 0.2")
     assert "strongest at 17 cycles/rev" in words and "q2 ∈ [−2.40, 0.10] rad" in words
     # a range beyond ±π (a joint that turned past it) still holds its knots
     assert map_summary(c, (-4.27, 0.06))["peak_rad"] == pytest.approx(4e-4, rel=0.02)
