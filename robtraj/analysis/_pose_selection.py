@@ -159,6 +159,17 @@ def select(
     n_res = 6 * series.n
     current, named, map_prior = nominal, [], None
     fits, steps, tried, rejected = [nominal], [], [], []
+    structural = {}
+
+    def h_struct(p: int) -> np.ndarray:
+        """The normal matrix at the effects' zero (the nominal fit's rigid transforms),
+        for identifiability: the model's structure, computed once per layout."""
+        if p not in structural:
+            at = jnp.asarray(_resized(nominal.theta[:12], p))
+            data = _data(nominal.z0, nominal.x0, series, w, False)
+            structural[p] = np.asarray(normal_at(pose_normal, at, data)[0])
+        return structural[p]
+
     for rnd in range(1, max_steps + 1):
         taken = {group_of(c) for c in named}
         remaining = [c for c in candidates if group_of(c) not in taken]
@@ -170,9 +181,7 @@ def select(
         theta = _resized(current.theta, p)
         data = _data(current.z0, current.x0, series, w, False)
         lin = linearise(theta, data, label)
-        structure = np.where(np.arange(p) < 12, theta, 0.0)
-        h_struct = np.asarray(normal_at(pose_normal, jnp.asarray(structure), data)[0])
-        rnd_ = _Round(lin, h_struct, series, rigid)
+        rnd_ = _Round(lin, h_struct(p), series, rigid)
         has_maps = bool(map_terms_of(named))
         now = rnd_.score(named, map_prior)
         chi2_now = _chi2(lin, now["steps"][-1])
@@ -244,15 +253,7 @@ def select(
         say(f"{series.name}: the maps' prior of the final model")
         theta = current.theta
         lin = linearise(theta, _data(current.z0, current.x0, series, w, False), label)
-        structure = np.where(np.arange(theta.size) < 12, theta, 0.0)
-        h_struct = np.asarray(
-            normal_at(
-                pose_normal,
-                jnp.asarray(structure),
-                _data(current.z0, current.x0, series, w, False),
-            )[0]
-        )
-        rnd_ = _Round(lin, h_struct, series, rigid)
+        rnd_ = _Round(lin, h_struct(theta.size), series, rigid)
         table = [(mp, rnd_.score(named, mp)["cv"]) for mp in prior_grid]
         best = min(table, key=lambda x: _cost(x[1]))[0]
         steps[-1]["final_map_prior"] = {
