@@ -305,7 +305,7 @@ def fit(
     def residual_stats(b: BundleData):
         d, theta = cp.evaluate(jnp.zeros(q), b.problem.constellation, b.problem, b.chunks)
         d, theta = np.asarray(d)[: data.n_frames], np.asarray(theta)[: data.n_frames]
-        return d, theta, np.sum(d * d, -1)
+        return d, theta, np.einsum("fli,fli->fl", d, d)  # no (frames, leds, 3) temporary
 
     used = w_user > 0
     w = w_user
