@@ -5,15 +5,15 @@ exact: Student's t for a mean (AP components, AD, AV, mean stabilisation time, �
 the χ² interval for a 3·S term (RD, RV, RP per orientation component). Every other
 RP and the single-angle RP (l̄ + 3·S_l of distances to the mean) come from their
 Gaussian sampling distribution (`rp_gaussian_interval`); maxima over planes come from
-a bootstrap at the estimates restricted to a tested maximum (AT, `max_length_interval`;
-RT, `max_scale_interval`). Every other characteristic (lengths of means, differences
-between groups of cycles) gets a studentised (bootstrap-t) interval over cycles, stratified
-where cycles fall into groups (approach directions, early/late cycles), each resample
-standardised by its jackknife standard error (second-order accurate, where the
-percentile bootstrap under-covers with few cycles). Bootstraps of l̄ + 3·S_l
-under-cover even at 30 cycles (measured: BCa 85 %, studentised 92 %), hence the
-Gaussian interval for RP. Statistics are vectorised over leading batch axes so a
-whole bootstrap is one array expression.
+a parametric bootstrap at the estimates restricted to a tested maximum (AT, studentised,
+`max_length_interval`; RT, `max_scale_interval`). Every other characteristic (lengths
+of means, differences between groups of cycles) gets a studentised (bootstrap-t)
+interval over cycles, stratified where cycles fall into groups (approach directions,
+early/late cycles), each resample standardised by its jackknife standard error
+(second-order accurate, where the percentile bootstrap under-covers with few cycles).
+Bootstraps of l̄ + 3·S_l under-cover even at 30 cycles (measured: BCa 85 %,
+studentised 92 %), hence the Gaussian interval for RP. Statistics are vectorised over
+leading batch axes so a whole bootstrap is one array expression.
 """
 
 from __future__ import annotations
@@ -265,53 +265,139 @@ def max_length_interval(
     level: float = LEVEL,
 ) -> Interval:
     """Interval of θ = max_k |μ_k|, the largest length over planes of the mean error, from
-    the passes' `errors` (NaN where a pass misses a plane; planes need two passes).
+    the passes' `errors` (NaN where a pass misses a plane; planes need two passes), in the
+    errors' unit.
 
     The maximum of estimates is biased up where planes tie near the top, so a bootstrap
-    of it centred on the estimate under-covers. Instead θ0 is tested, and kept when the
-    observed T = max_k |ē_k| lies between the (1 ∓ level)/2 quantiles of T under the
-    means restricted to max_k |μ_k| = θ0 (each ē_k shortened to θ0 where longer, the
-    longest one lengthened to θ0 where all are shorter: planes at the top tie again),
-    with the noise of the means drawn from the passes' residuals with Gaussian
-    multipliers (N(0, Σ̂_k/n_k), correlated between planes as the passes make them),
-    scaled by t_{n_k−1}/z at the level for the uncertainty of each plane's scatter
-    (exact for one resolved plane). The interval runs from the smallest to the largest
-    kept θ0 on a grid, interpolated; it starts at 0 where θ0 = 0 is kept. Coverage is
-    near `level` with one plane on top and above it where planes tie (design notes).
+    of it centred on the estimate under-covers. Instead θ0 is tested with the largest
+    t statistic over planes, S(θ0) = max_k (|ē_k| − θ0)/s_k (s_k the standard error of
+    |ē_k|, along ē_k), against its distribution at the means restricted to max_k |μ_k| =
+    θ0: the planes the restriction puts at θ0 (the estimates at least θ0 long, shortened
+    to it, and the longest one, lengthened to it where all are shorter) are simulated;
+    the others enter with their observed t, itself a draw from their sampling
+    distribution (simulated around their estimates they would carry that noise twice).
+    Each simulated set of passes is drawn from N(restricted means, Σ̂)
+    (`_simulated_moments`) and studentised by its own covariance, so with one plane the
+    test is Student's t. θ0 is kept when S(θ0) lies between the (1 ∓ level)/2 quantiles.
+    Above the largest estimate only the longest plane is simulated: the upper end is
+    where every plane's t falls below that plane's lower quantile, an intersection–union
+    test (valid whatever the other planes' means, exact with one plane on top). The
+    interval runs from the smallest to the largest kept θ0, interpolated on a grid; it
+    starts at 0 where θ0 = 0 is kept. Coverage is near `level` with one plane on top,
+    above it where planes nearly tie at the top and a little below where many tie
+    exactly (design notes).
     """
     e = np.asarray(errors, np.float64)
     valid = np.all(np.isfinite(e), axis=-1)  # (passes, planes)
     use = valid.sum(axis=0) >= 2
     e, valid = e[:, use], valid[:, use]
-    n_pass, n_planes = valid.shape
-    if n_planes == 0:
+    if e.shape[1] == 0:
         return NAN_INTERVAL
     nk = valid.sum(axis=0)
     m = np.nanmean(np.where(valid[..., None], e, np.nan), axis=0)  # (planes, dim)
+    r = np.where(valid[..., None], e - m, 0.0)
     g = np.linalg.norm(m, axis=-1)
-    z = stats.norm.ppf(0.5 + level / 2)
-    scale = np.sqrt(nk / (nk - 1)) * stats.t.ppf(0.5 + level / 2, nk - 1) / z
-    r = np.where(valid[..., None], (e - m) * scale[:, None], 0.0)
-    # Gaussian multipliers: N(0, Σ̂_k/n_k) per plane, correlated between planes as the
-    # passes are (resampling 5–10 passes gives a lumpy, short-tailed distribution)
-    xi = rng.standard_normal((n_boot, n_pass))
-    noise = np.einsum("bi,ikd->bkd", xi, r) / nk[:, None]
     t_obs = float(g.max())
-    span = 1.5 * float(np.nanmax(np.linalg.norm(noise, axis=-1)))
-    if not np.isfinite(span) or span == 0.0:
+    u = np.where(g[:, None] > 0, m / np.maximum(g, 1e-300)[:, None], np.eye(m.shape[1])[0])
+    s = np.sqrt(np.sum(np.einsum("ikd,kd->ik", r, u) ** 2, axis=0) / ((nk - 1) * nk))
+    if not (np.isfinite(t_obs) and t_obs > 0 and s.max() > 0):
         return t_obs, t_obs
-    theta = np.linspace(max(t_obs - span, 0.0), t_obs + span, 64)
+    floor = 1e-12 * float(s.max())  # a plane without scatter: a t of ±1e12, not ±inf
+    s = np.maximum(s, floor)
+    moments = _simulated_moments(r, valid, m, rng, n_boot)
     top = int(np.argmax(g))
-    shrink = np.minimum(1.0, theta[:, None] / np.maximum(g, 1e-300))  # (grid, planes)
-    shrink[:, top] = theta / max(g[top], 1e-300)  # the longest: shortened or lengthened
-    # |f·ē_k + noise|² without the (grid, boot, planes, dim) array
-    mn = np.einsum("kd,bkd->bk", m, noise)
-    nn = np.sum(noise * noise, axis=-1)
-    f = shrink[:, None, :]
-    length2 = f * f * (g * g) + 2.0 * f * mn + nn  # (grid, boot, planes)
-    t_boot = np.sqrt(np.max(np.where(np.isfinite(length2), length2, -np.inf), axis=-1))
-    q_lo, q_hi = np.quantile(t_boot, [0.5 - level / 2, 0.5 + level / 2], axis=1)
-    return _first_drop(theta, t_obs - q_hi), _first_drop(theta, t_obs - q_lo)
+
+    def excess(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """S_obs(θ0) − the upper and the lower critical value, per θ0 in `theta`."""
+        t_k = (g - theta[:, None]) / s  # (grid, planes)
+        at_theta = g >= theta[:, None]
+        at_theta[:, top] = True
+        s_sim = _max_t(theta, g, nk, moments, floor, at_theta)  # (grid, boot)
+        q_lo, q_hi = np.quantile(s_sim, [0.5 - level / 2, 0.5 + level / 2], axis=1)
+        rest = np.max(np.where(at_theta, -np.inf, t_k), axis=1)
+        s_obs = np.max(t_k, axis=1)
+        # the simulated S is max(simulated planes, rest), its quantiles max(q, rest);
+        # as s_obs ≥ rest, s_obs < max(q_lo, rest) iff s_obs < q_lo: compared with q_lo
+        # alone, a plane whose t is both s_obs and the critical value keeps θ0
+        return s_obs - np.maximum(q_hi, rest), s_obs - q_lo
+
+    q = -np.asarray(excess(np.array([t_obs])))[:, 0]  # S_obs(T) = 0: −(q_hi, q_lo) at T
+    span = 2.0 * float(np.max(np.abs(q))) * float(s.max())
+    for _ in range(6):  # widen until the grid holds both ends
+        theta = np.linspace(max(t_obs - span, 0.0), t_obs + span, 48)
+        d_lo, d_hi = excess(theta)
+        if (d_lo[0] > 0 or theta[0] == 0.0) and d_hi[-1] <= 0:
+            break
+        span *= 2.0
+    lo = _refined_drop(theta, d_lo, lambda th: excess(th)[0])
+    hi = _refined_drop(theta, d_hi, lambda th: excess(th)[1])
+    return lo, hi
+
+
+def _simulated_moments(
+    r: np.ndarray, valid: np.ndarray, m: np.ndarray, rng: np.random.Generator, n_boot: int
+) -> tuple[np.ndarray, ...]:
+    """Moments of `n_boot` simulated sets of passes, with the observed passes' gaps (a
+    simulated pass misses the planes its observed one misses): each pass a Gaussian
+    combination of the residuals `r` `(passes, planes, dim)` (0 where a pass misses a
+    plane), i.e. drawn from N(0, Σ̂) with Σ̂ the passes' joint covariance of all planes,
+    so planes stay correlated as the passes make them. Per plane k and draw: the mean
+    δ_k ~ N(0, Σ̂_k/n_k) and the sample covariance Σ*_k ~ Wishart(Σ̂_k, n_k − 1)/(n_k − 1),
+    independent of δ_k. Returns m·δ, δ·δ, mᵀΣ*m, mᵀΣ*δ, δᵀΣ*δ, each `(n_boot, planes)`,
+    for the observed means `m` `(planes, dim)`, in the errors' unit squared."""
+    n_pass, n_planes, dim = r.shape
+    nk = valid.sum(axis=0)
+    flat = (r / np.sqrt(nk - 1.0)[:, None]).reshape(n_pass, n_planes * dim)
+    out = []
+    for b0 in range(0, n_boot, 256):  # chunks bound the (boot, passes, planes, dim) array
+        xi = rng.standard_normal((min(256, n_boot - b0), n_pass, n_pass))
+        y = np.where(valid[..., None], (xi @ flat).reshape(-1, n_pass, n_planes, dim), 0.0)
+        delta = y.sum(axis=1) / nk[:, None]
+        yc = np.where(valid[..., None], y - delta[:, None], 0.0)
+        pm = np.einsum("bjkd,kd->bjk", yc, m)
+        pd = np.einsum("bjkd,bkd->bjk", yc, delta)
+        out.append(np.stack([
+            np.einsum("bkd,kd->bk", delta, m), np.sum(delta * delta, axis=-1),
+            np.sum(pm * pm, axis=1) / (nk - 1), np.sum(pm * pd, axis=1) / (nk - 1),
+            np.sum(pd * pd, axis=1) / (nk - 1),
+        ]))  # fmt: skip
+    return tuple(np.concatenate(out, axis=1))
+
+
+def _max_t(
+    theta: np.ndarray,
+    g: np.ndarray,
+    nk: np.ndarray,
+    moments: tuple[np.ndarray, ...],
+    floor: float,
+    at_theta: np.ndarray,
+) -> np.ndarray:
+    """Simulated max_k (|v_k| − θ0)/s*_k over the planes `at_theta` `(grid, planes)`,
+    `(grid, boot)`: v_k = θ0·ē_k/|ē_k| + δ_k, the mean of a plane restricted to θ0 plus
+    its simulated noise, s*_k the standard error of |v_k| along v_k from the simulated
+    covariance (`_simulated_moments`); `g` = |ē_k|."""
+    md, dd, msm, msd, dsd = moments
+    out = np.empty((theta.size, md.shape[0]))
+    for i in range(theta.size):  # one θ0 at a time, over its planes at θ0 only
+        k = np.flatnonzero(at_theta[i])
+        f = theta[i] / np.maximum(g[k], 1e-300)
+        len2 = np.maximum(f * f * g[k] * g[k] + 2.0 * f * md[:, k] + dd[:, k], 1e-300)
+        var = (f * f * msm[:, k] + 2.0 * f * msd[:, k] + dsd[:, k]) / (len2 * nk[k])
+        t = (np.sqrt(len2) - theta[i]) / np.sqrt(np.maximum(var, floor * floor))
+        out[i] = np.max(t, axis=1)
+    return out
+
+
+def _refined_drop(
+    x: np.ndarray, d: np.ndarray, fn: Callable[[np.ndarray], np.ndarray], points: int = 16
+) -> float:
+    """`_first_drop` of `d` on the grid `x`, then again on `points` values of `fn` between
+    the two grid points around the drop."""
+    i = np.flatnonzero((d[:-1] > 0) & (d[1:] <= 0))
+    if d[0] <= 0 or i.size == 0:
+        return _first_drop(x, d)
+    fine = np.linspace(x[i[0]], x[i[0] + 1], points)
+    return _first_drop(fine, fn(fine))
 
 
 def _first_drop(x: np.ndarray, d: np.ndarray) -> float:

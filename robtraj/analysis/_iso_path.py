@@ -41,9 +41,10 @@ class PathCharacteristics:
     move: `AV` = (v̄ − v_c)/v_c, `RV` = 3·S_v̄/v_c (fractions), `FV` = max over passes of
     (max − min speed) [m/s]. `plane_AT`, `plane_RT` `(n_planes,)` per plane. `ci`: 95 %
     intervals keyed by the JSON names without unit, in SI (fractions for AV, RV):
-    the restricted bootstrap of the maximum over planes for AT (position, a/b/c, angle;
-    `max_length_interval`) and for RT (position, a/b/c; `max_scale_interval`), Student
-    t / χ² for AV / RV; none for FV (a maximum over passes).
+    the restricted parametric bootstrap of the maximum over planes for AT (studentised;
+    position, a/b/c, angle; `max_length_interval`) and for RT (position, a/b/c;
+    `max_scale_interval`), Student t / χ² for AV / RV; none for FV (a maximum over
+    passes).
     """
 
     name: str

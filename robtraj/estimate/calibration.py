@@ -40,7 +40,9 @@ of the `Effects` (`estimate=`), from every usable frame:
 Data flow, one module after the other: `_calib_data.prepare` (observations) →
 `_calib_init` (closed-form start) → `_calib_problem` (parameters, residuals, normal
 equations) → `_solve` (Optimistix) → `_uncertainty` (identifiability, covariance) →
-`_calib_result` (the result).
+`_calib_result` (the result). Beside it, on background threads (`_compile_ahead`): the
+noise model (`_observation_noise`) while the observations are prepared and the start
+computed, and the problem's structure and kernels (compiled for its shapes) meanwhile.
 """
 
 from __future__ import annotations
@@ -311,7 +313,7 @@ def fit(
     def residual_stats(b: BundleData):
         d, theta = cp.evaluate(jnp.zeros(q), b.problem.constellation, b.problem, b.chunks)
         d, theta = np.asarray(d)[: data.n_frames], np.asarray(theta)[: data.n_frames]
-        return d, theta, np.sum(d * d, -1)
+        return d, theta, np.einsum("fli,fli->fl", d, d)  # no (frames, leds, 3) temporary
 
     used = w_user > 0
     w = w_user
@@ -670,19 +672,21 @@ def _structure(
     names: tuple[tuple[str, ...], tuple[str, ...], bool],
     sizes: tuple[int, int],
     start: np.ndarray,
-    basis: np.ndarray,
-    probe,
-    chunk: int,
+    probe_poses: tuple,
+    chunk: int | None,
     solver,
     normal: bool,
     clustered: bool,
 ):
     """The bundle problem of `_setup` at placeholder poses and uniform weights (its
-    shapes and static parts are those of the fit), the clusters of the robust covariance
-    and the compilations of the fit's kernels (queued on `ahead`, after this): returns
+    shapes and static parts are those of the fit; `probe_poses`: the recording's
+    `/probe` and the clock offset), the clusters of the robust covariance and the
+    compilations of the fit's kernels (queued on `ahead`, after this): returns
     ``(bundle, clusters, futures of the kernels the start and the solve need)``."""
     free, estimated, start_only = names
     q, p = sizes  # global parameters, all of θ
+    probe = cp.probe_observations(probe_poses[0], data, probe_poses[1])
+    basis = cp.gauge_basis(data.reference, data.led_seen, probe is not None)
     kinematic = any(cp.is_kinematic(n) for n in free) or any(
         cp.is_kinematic(n) for n in effects0.terms
     )
@@ -708,7 +712,7 @@ def _structure(
         ),
         led_columns=start_only,
     )
-    chunks = cp.chunked_frames(data, data.seen.astype(float), chunk)
+    chunks = cp.chunked_frames(data, data.seen.astype(float), cp.chunk_size(data.n_frames, chunk))
     if not kinematic:
         fl = cp.fixed_flange_poses(data.robot, effects0, problem.log_time, problem.joints, chunks)
         chunks = dataclasses.replace(chunks, base_from_flange=fl)
@@ -801,13 +805,11 @@ def _setup(
         for k, v in init.effects.items():
             effects0 = effects0.with_value(k, v)
 
-    # the problem's structure and its kernels, on the compiling thread meanwhile
-    probe = cp.probe_observations(recording.probe, data, tau0)
-    gauge = "probe" if probe is not None else "reference_constellation"
-    basis = cp.gauge_basis(data.reference, data.led_seen, probe is not None)
+    # the problem's structure and its kernels, on the compiling thread meanwhile (the
+    # constellation basis has 3 columns per LED, padded: fixed shapes)
     gnames = _global_names(effects0, free)
     q = len(gnames)
-    names_theta = gnames + [f"constellation.c{j}" for j in range(basis.shape[1])]
+    names_theta = gnames + [f"constellation.c{j}" for j in range(3 * data.n_leds)]
     if clustered and q > ROBUST_MAX_GLOBAL:
         say(f"{q} global parameters: Gauss–Newton covariance only (no cluster-robust σ)")
         clustered = False
@@ -820,9 +822,8 @@ def _setup(
         (free, estimated, start_only),
         (q, len(names_theta)),
         start,
-        basis,
-        probe,
-        cp.chunk_size(data.n_frames, chunk),
+        (recording.probe, tau0),
+        chunk,
         solver if normal else None,
         normal,
         clustered,
@@ -854,6 +855,8 @@ def _setup(
 
     # problem
     bundle, clusters, first = structure.result()
+    probe, basis = bundle.probe, np.asarray(bundle.basis)
+    gauge = "probe" if probe is not None else "reference_constellation"
     # the observations live on in the chunks; the frame-major copy is not needed again
     data = dataclasses.replace(data, measured=np.zeros((0, data.n_leds, 3)))
     bundle = eqx.tree_at(
