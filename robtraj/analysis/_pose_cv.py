@@ -26,7 +26,6 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from ._pose_fit import _OFFSET, N_PARAMS, PoseData, group_terms
 from ._pose_normal import map_jvp
 
 
@@ -35,8 +34,9 @@ class Linearisation:
     """A series' normal equations at θ, in total and per region, and what the held-out
     predictions need: `h`, `b` `(P, P)`, `(P,)` (weighted data, no prior), `h_g`, `b_g`
     per region, `cost` ``rᵀWr``, the unweighted residual `r` `(N, 6)` (position [m],
-    rotation vector [rad]), the dense Jacobian `j` `(N, 6, N_PARAMS)`, the maps' active
-    knots and every pose's region `label`."""
+    rotation vector [rad]), the dense Jacobian `j` `(N, 6, n_dense)` of the entries
+    before the maps' knots, the maps' active knots, every pose's region `label` and where
+    the joint offsets lie in θ (`offset`, the maps' columns follow from theirs)."""
 
     theta: np.ndarray
     label: np.ndarray
@@ -49,31 +49,15 @@ class Linearisation:
     j: np.ndarray
     map_index: np.ndarray
     map_weight: np.ndarray
+    offset: tuple[int, int]
+
+    @property
+    def n_dense(self) -> int:
+        return int(self.j.shape[-1])
 
     @property
     def n_regions(self) -> int:
         return int(self.h_g.shape[0])
-
-
-def linearise(theta: np.ndarray, data: PoseData, label: np.ndarray) -> Linearisation:
-    """The linearisation of the pose model of `data` at `theta`, per region `label`."""
-    g = int(label.max()) + 1
-    h_g, b_g, c_g, r, j = (
-        np.asarray(a) for a in group_terms(jnp.asarray(theta), data, jnp.asarray(label), g)
-    )
-    return Linearisation(
-        theta=np.asarray(theta, float),
-        label=np.asarray(label),
-        h=h_g.sum(0),
-        b=b_g.sum(0),
-        cost=float(c_g.sum()),
-        h_g=h_g,
-        b_g=b_g,
-        r=r,
-        j=j,
-        map_index=np.asarray(data.map_index),
-        map_weight=np.asarray(data.map_weight),
-    )
 
 
 def posterior(lin: Linearisation, prior: np.ndarray | None):
@@ -110,15 +94,16 @@ class RegionSystems:
     """The systems ``(H + Λ − H_g) δ = b − Λθ − b_g`` of every left-out region g (and of
     the whole series, last), with the free knots of the maps eliminated once: per
     system, the Cholesky factor of the map block gives the Schur complement onto the
-    other entries, `(N_PARAMS, N_PARAMS)`, from which the step of any model that shares
+    other entries, `(n_dense, n_dense)`, from which the step of any model that shares
     those knots (and the prior) is a small solve. A round of the search scores every
     candidate from one set of these."""
 
     def __init__(self, lin: Linearisation, prior: np.ndarray | None, map_free: np.ndarray):
         h, b = posterior(lin, prior)
-        self.map_free = np.asarray(map_free[N_PARAMS:], bool)
-        m = np.flatnonzero(self.map_free) + N_PARAMS
-        d = np.arange(N_PARAMS)
+        n = self.n_dense = lin.n_dense
+        self.map_free = np.asarray(map_free[n:], bool)
+        m = np.flatnonzero(self.map_free) + n
+        d = np.arange(n)
         self.m = m
         self.schur, self.rhs, self.y, self.ym = [], [], [], []
         for g in range(lin.n_regions + 1):
@@ -139,9 +124,10 @@ class RegionSystems:
     def steps(self, free: np.ndarray) -> np.ndarray:
         """`(G + 1, P)`: the step on the `free` entries of each system (its map knots must
         be those the systems eliminated)."""
-        if not np.array_equal(free[N_PARAMS:], self.map_free):
+        n = self.n_dense
+        if not np.array_equal(free[n:], self.map_free):
             raise ValueError("the free map knots differ from those eliminated")
-        dense = np.flatnonzero(free[:N_PARAMS])
+        dense = np.flatnonzero(free[:n])
         out = np.zeros((len(self.schur), self.p))
         for g, (s, r) in enumerate(zip(self.schur, self.rhs)):
             x = _solve(s[np.ix_(dense, dense)], r[dense]) if dense.size else np.zeros(0)
@@ -160,16 +146,16 @@ def region_steps(lin: Linearisation, free: np.ndarray, prior: np.ndarray | None)
 def held_out(lin: Linearisation, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Position error [m] and rotation angle [rad] of every pose predicted with its region
     left out (`steps` from `region_steps`): the norms of ``r + J·Δ_{region}``."""
-    label = lin.label
-    res = lin.r + np.einsum("nkp,np->nk", lin.j, steps[label, :N_PARAMS])
-    if steps.shape[1] > N_PARAMS:
+    label, n = lin.label, lin.n_dense
+    res = lin.r + np.einsum("nkp,np->nk", lin.j, steps[label, :n])
+    if steps.shape[1] > n:
         res = res + np.asarray(
             map_jvp(
                 jnp.asarray(lin.j),
-                _OFFSET,
+                lin.offset,
                 jnp.asarray(lin.map_index),
                 jnp.asarray(lin.map_weight),
-                jnp.asarray(steps[:, N_PARAMS:]),
+                jnp.asarray(steps[:, n:]),
                 jnp.asarray(label),
             )
         )

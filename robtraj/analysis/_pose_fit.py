@@ -49,6 +49,7 @@ from ..model import (
     redundant_link_parameters,
     ur10,
 )
+from ._pose_cv import Linearisation, RegionSystems
 from ._pose_normal import map_index, normal_terms
 from ._pose_series import PoseSeries
 from ._quat import rotation_angle
@@ -663,6 +664,28 @@ def group_terms(theta, d: PoseData, group, n_groups: int):
     return h, b, c, r, j
 
 
+def linearise(theta: np.ndarray, data: PoseData, label: np.ndarray) -> Linearisation:
+    """The linearisation of the pose model of `data` at `theta`, per region `label`."""
+    g = int(label.max()) + 1
+    h_g, b_g, c_g, r, j = (
+        np.asarray(a) for a in group_terms(jnp.asarray(theta), data, jnp.asarray(label), g)
+    )
+    return Linearisation(
+        theta=np.asarray(theta, float),
+        label=np.asarray(label),
+        h=h_g.sum(0),
+        b=b_g.sum(0),
+        cost=float(c_g.sum()),
+        h_g=h_g,
+        b_g=b_g,
+        r=r,
+        j=j,
+        map_index=np.asarray(data.map_index),
+        map_weight=np.asarray(data.map_weight),
+        offset=_OFFSET,
+    )
+
+
 def _data(
     z0, x0, series: PoseSeries, w: np.ndarray, rigid_only: bool, prior: GaussianPrior | None = None
 ) -> PoseData:
@@ -881,8 +904,6 @@ def _region_jackknife(theta, data: PoseData, free, series: PoseSeries, h) -> np.
     formula of `robust_covariance`) with the poses grouped into `regions` of joint
     space, each deletion one Gauss–Newton step from the estimate, the maps' knots
     eliminated first (`_pose_cv.RegionSystems`); `h` the posterior normal matrix."""
-    from ._pose_cv import RegionSystems, linearise
-
     label = regions(series)
     if label.max() < 1:
         return np.full((theta.size, theta.size), np.nan)

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.linalg
 
 from ..estimate import normal_at
-from ._pose_cv import Linearisation, RegionSystems, cv_error, gain, linearise, posterior
+from ._pose_cv import Linearisation, RegionSystems, cv_error, gain, posterior
 from ._pose_fit import (
     HARMONIC_TERMS,
     MAP_TERMS,
@@ -34,6 +34,7 @@ from ._pose_fit import (
     _weights,
     fit_poses,
     identifiable,
+    linearise,
     map_prior_of,
     map_terms_of,
     marginal,
