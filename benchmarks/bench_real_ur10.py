@@ -10,6 +10,8 @@ of Series B with pure 1/std² weights, and the black-box anchor.
 
     python benchmarks/bench_real_ur10.py [--every-a 1] [--every-b 1] [--json PATH] [--dictionary]
 
+Results: `benchmarks/results/real_ur10.json` (default `--json`).
+
 `--dictionary` offers the dictionary's joint-angle harmonics (24 terms) as candidates
 besides the library (results: benchmarks/results/real_ur10_dictionary.json).
 """
@@ -126,7 +128,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--every-a", type=int, default=1)
     ap.add_argument("--every-b", type=int, default=1)
-    ap.add_argument("--json", metavar="PATH")
+    ap.add_argument("--json", metavar="PATH", default="benchmarks/results/real_ur10.json")
     ap.add_argument(
         "--dictionary",
         action="store_true",
