@@ -12,8 +12,11 @@ interval over cycles, stratified where cycles fall into groups (approach directi
 early/late cycles), each resample standardised by its jackknife standard error
 (second-order accurate, where the percentile bootstrap under-covers with few cycles).
 Bootstraps of l̄ + 3·S_l under-cover even at 30 cycles (measured: BCa 85 %,
-studentised 92 %), hence the Gaussian interval for RP. Statistics are vectorised over
-leading batch axes so a whole bootstrap is one array expression.
+studentised 92 %), hence the Gaussian interval for RP. Absolute differences (dAP, dRP)
+come from the signed difference's interval (`abs_interval`), and intervals of
+quantities with a physical bound are cut at it (`bounded`: a mean of non-negative
+times or distances, a length). Statistics are vectorised over leading batch axes so a
+whole bootstrap is one array expression.
 """
 
 from __future__ import annotations
