@@ -15,6 +15,7 @@ from ._iso_ci import (
     N_BOOT,
     Interval,
     batch_rotation_angle,
+    bounded,
     max_length_interval,
     max_scale_interval,
     pair,
@@ -269,8 +270,9 @@ def path_statistics(
     vm, vc = np.asarray(v_mean, np.float64), commanded_speed
     has_v = vm.size > 0 and vc > 0
     if has_v:
-        ci["v_mean"] = pair(*t_interval(vm))
-        ci["AV"] = pair(*t_interval(vm / vc - 1.0))
+        # a speed is ≥ 0: v̄ ≥ 0 and AV = (v̄ − v_c)/v_c ≥ −1
+        ci["v_mean"] = bounded(pair(*t_interval(vm)))
+        ci["AV"] = bounded(pair(*t_interval(vm / vc - 1.0)), -1.0)
         ci["RV"] = pair(*three_s_interval(vm / vc))
     values = {
         "n_cycles": int(valid.any(axis=1).sum()),
@@ -327,7 +329,8 @@ def _corners(moves, cluster, names, tp, position, dev, frac_all, corner_angle):
         if len(v) < 1:
             continue
         cr, co = np.array(v).T
-        ci = {"CR_mean": pair(*t_interval(cr)), "CO_mean": pair(*t_interval(co))}
+        # distances: Student t cut at 0 (`bounded`)
+        ci = {"CR_mean": bounded(pair(*t_interval(cr))), "CO_mean": bounded(pair(*t_interval(co)))}
         out.append(CornerCharacteristics(names[c], point[c], len(v), float(cr.mean()),
                                          float(cr.max()), float(co.mean()), float(co.max()),
                                          ci))  # fmt: skip

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 from jaxtyping import Float
+from scipy import stats
 
 from .._errors import UserError
 from ..recording import Program
@@ -30,13 +31,15 @@ from ._iso_ci import (
     N_BOOT,
     NAN_INTERVAL,
     Interval,
-    fold_abs,
+    abs_interval,
+    bounded,
     length_interval,
     pair,
-    rp_difference_interval,
+    rp_difference,
     rp_gaussian_interval,
     t_interval,
     three_s_interval,
+    welch,
     welch_interval,
     with_intervals,
 )
@@ -304,8 +307,9 @@ def _pose(
     def stat(v: list[float], f) -> float:
         return float(f(v)) if v else float("nan")
 
-    ci["t_stab_mean"] = pair(*t_interval(np.array(t_stab)))
-    ci["overshoot_mean"] = pair(*t_interval(np.array(ov)))
+    # means of non-negative times and distances: Student t cut at 0 (`bounded`)
+    ci["t_stab_mean"] = bounded(pair(*t_interval(np.array(t_stab))))
+    ci["overshoot_mean"] = bounded(pair(*t_interval(np.array(ov))))
     return PoseCharacteristics(
         name=name,
         commanded_position=cp,
@@ -390,8 +394,9 @@ def pose_statistics(
         # AP direction (lengths near-linear where |AP| ≫ its standard error)
         pe = (early - cp) @ (e_xyz / max(float(np.linalg.norm(e_xyz)), 1e-300))
         pl = (late - cp) @ (l_xyz / max(float(np.linalg.norm(l_xyz)), 1e-300))
-        ci["dAP"] = fold_abs(*welch_interval(pe, pl))
-        ci["dRP"] = fold_abs(*rp_difference_interval(early, late))
+        d, _, nu = welch(pe, pl)
+        ci["dAP"] = abs_interval(d, *welch_interval(pe, pl), stats.t(nu))
+        ci["dRP"] = abs_interval(*rp_difference(early, late))
     else:
         dap = drp = float("nan")
         ci["dAP"] = ci["dRP"] = NAN_INTERVAL
@@ -434,7 +439,8 @@ def _distances(dwells, cluster, test, names, tp) -> list[DistanceCharacteristics
             continue
         d = np.array([x[0] for x in v])
         dc = v[0][1]
-        ci = {"AD": pair(*t_interval(d - dc)), "RD": pair(*three_s_interval(d))}
+        # a distance is ≥ 0, so AD = D̄ − D_c ≥ −D_c
+        ci = {"AD": bounded(pair(*t_interval(d - dc)), -dc), "RD": pair(*three_s_interval(d))}
         out.append(DistanceCharacteristics(f"{names[ca]}-{names[cb]}", dc, float(d.mean() - dc),
                                            3.0 * _s(d), len(v), ci))  # fmt: skip
     return out

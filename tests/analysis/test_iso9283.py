@@ -5,11 +5,12 @@ import json
 
 import numpy as np
 import pytest
-from _synthetic import attained, cube_program, round_corners, trajectory
+from _synthetic import attained, cube_program, quat, round_corners, trajectory
 from scipy.spatial.transform import Rotation
 
 import robtraj
 from robtraj.analysis import iso9283
+from robtraj.analysis.iso9283 import pose_statistics
 from robtraj.recording import Pose, Program
 
 CYCLES, PATH_CYCLES = 30, 6
@@ -340,3 +341,80 @@ def test_json_intervals_next_to_values(cube):
     assert p1["t_stab_max_s_ci95"] is None  # a maximum over cycles has no interval
     path = next(iter(out["paths"].values()))
     assert path["AV_percent_ci95"] is not None and path["FV_mm_per_s_ci95"] is None
+
+
+#: characteristics that may be negative (signed means); AV is ≥ −1, AD ≥ −D_c
+_SIGNED = ("APx", "APy", "APz", "APa", "APb", "APc", "AD", "AV")
+
+
+def _below_bounds(doc) -> list[tuple[str, str, str, float]]:
+    """Intervals of an ISO JSON doc that start below their quantity's physical range: 0
+    for the non-negative characteristics, −100 % for AV."""
+    out = []
+    for block, items in doc.items():
+        for name, d in items.items():
+            for key, ci in d.items():
+                if not key.endswith("_ci95") or ci is None:
+                    continue
+                k = key[: -len("_ci95")]
+                floor = -100.0 if k.startswith("AV") else 0.0
+                if ci[0] < floor and (k.startswith("AV") or not k.startswith(_SIGNED)):
+                    out.append((block, name, k, ci[0]))
+    return out
+
+
+def _few_cycle_run(seed: int):
+    """Three pose cycles (as the demo) with a ringing after each arrival whose amplitude
+    varies from cycle to cycle (0, 0.2 or 0.8 mm: some cycles never leave the 0.1 mm
+    band, t_stab = OV = 0) and a pose error near 0; three passes of the rectangle with
+    corners cut by a 2 mm arc and 0.3 mm of noise per frame (CR, CO vary by pass)."""
+    rng = np.random.default_rng(seed)
+    prog, dwell = cube_program(3, 3)
+    pos, q = attained(prog, np.full(3, 2e-6), 2e-6, np.zeros(3), 1e-5, rng)
+    t, p, qq, seg = trajectory(prog, pos, q, dwell, rate=200.0, dwell_time=1.5)
+    still = np.concatenate([[False], np.all(np.diff(p, axis=0) == 0, axis=1)])
+    ring = np.zeros(t.size)
+    for i in np.flatnonzero(np.diff(still.astype(int)) == 1):
+        dt, amp = t[i:] - t[i], rng.choice([0.0, 2e-4, 8e-4])
+        ring[i:] += np.where(dt < 1.0, amp * np.exp(-dt / 0.1) * np.sin(10 * np.pi * dt), 0)
+    p = round_corners(prog, t, p + ring[:, None] * [1.0, 0, 0], seg, 2e-3)
+    p[prog.motion[seg] == "linear"] += rng.normal(
+        0.0, 3e-4, (np.sum(prog.motion[seg] == "linear"), 3)
+    )
+    return prog, t, p, qq, seg
+
+
+def test_intervals_of_non_negative_characteristics_stay_at_or_above_zero(monkeypatch):
+    """On simulated three-cycle runs every interval of a non-negative characteristic
+    (lengths, RP/RT, stabilisation time, overshoot, CR/CO, speeds, drift) starts at 0 or
+    above, AV's at −100 % or above; without the cut (`bounded` as the identity) the
+    Student-t intervals of the means reach below 0 on the same runs."""
+    import sys
+
+    runs = [_few_cycle_run(seed) for seed in (21, 22)]
+    docs = [iso9283(*r[:4], segment=r[4], band=1e-4, min_dwell=0.5).to_json() for r in runs]
+    for doc in docs:
+        assert doc["poses"] and doc["paths"] and doc["corners"]
+        assert not _below_bounds(doc), _below_bounds(doc)
+    for mod in (
+        "robtraj.analysis.iso9283",
+        "robtraj.analysis._iso_path",
+        "robtraj.analysis._iso_ci",
+    ):
+        monkeypatch.setattr(sys.modules[mod], "bounded", lambda ci, *_: ci)
+    uncut = [iso9283(*r[:4], segment=r[4], band=1e-4, min_dwell=0.5).to_json() for r in runs]
+    below = {k for doc in uncut for _, _, k, _ in _below_bounds(doc)}
+    assert {"t_stab_mean_s", "OV_mean_mm"} <= below, below
+
+
+def test_pose_intervals_of_lengths_stay_at_or_above_zero():
+    """Lengths near 0 (AP, AP_angle, vAP, dAP, dRP with no true error, 4 cycles): the
+    studentised bootstrap and the folded intervals start at 0 or above, in 100 runs."""
+    rng = np.random.default_rng(8)
+    cp, cq = np.array([1.0, 0.0, 0.5]), np.array([1.0, 0.0, 0.0, 0.0])
+    for _ in range(100):
+        x = cp + rng.normal(0.0, SIGMA, (4, 3))
+        q = quat(rng.normal(0.0, ROT_SIGMA, (4, 3)))
+        _, ci = pose_statistics(x, q, cp, cq, np.arange(4) % 2, 2, rng, 200)
+        for k in ("AP", "RP", "RPa", "RPb", "RPc", "AP_angle", "RP_angle", "vAP", "dAP", "dRP"):
+            assert ci[k][0] >= 0.0, (k, ci[k])
