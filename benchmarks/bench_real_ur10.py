@@ -10,7 +10,8 @@ of Series B with pure 1/std² weights, and the black-box anchor.
 
     python benchmarks/bench_real_ur10.py [--every-a 1] [--every-b 1] [--json PATH] [--dictionary]
 
-Results: `benchmarks/results/real_ur10.json` (default `--json`).
+Results: `benchmarks/results/real_ur10.json` (`real_ur10_dictionary.json` with
+`--dictionary`; `--json` to write elsewhere).
 
 `--dictionary` offers the dictionary's joint-angle harmonics (24 terms) as candidates
 besides the library (results: benchmarks/results/real_ur10_dictionary.json).
@@ -128,7 +129,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--every-a", type=int, default=1)
     ap.add_argument("--every-b", type=int, default=1)
-    ap.add_argument("--json", metavar="PATH", default="benchmarks/results/real_ur10.json")
+    ap.add_argument("--json", metavar="PATH")
     ap.add_argument(
         "--dictionary",
         action="store_true",
@@ -140,6 +141,9 @@ def main() -> None:
         help="the ipa-robot-accuracy data set folder (default: ../shared/data/...)",
     )
     a = ap.parse_args()
+    if a.json is None:
+        name = "real_ur10_dictionary.json" if a.dictionary else "real_ur10.json"
+        a.json = str(Path(__file__).resolve().parent / "results" / name)
     t0 = time.perf_counter()
     series = {
         "A": rd.load_series("A", a.data).every(a.every_a),

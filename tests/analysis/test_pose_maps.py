@@ -113,7 +113,7 @@ def test_one_step_cross_validation_equals_a_refit_without_the_region(estimate):
     prior = pf.map_prior_of(estimate)
     d = pf._data(f.z0, f.x0, s, pf._weights(s, NOISE), False, prior)
     label = pf.regions(s)
-    lin = cv.linearise(f.theta, d, label)
+    lin = pf.linearise(f.theta, d, label)
     steps = cv.region_steps(lin, f.free, prior.dense(f.theta.size) if prior.size else None)
     pos, ang = cv.held_out(lin, steps)
     g = int(np.argmax(np.bincount(label)))

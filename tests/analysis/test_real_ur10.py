@@ -202,7 +202,7 @@ def test_a_rejected_effect_helps_the_fitted_series_but_not_its_cross_validation(
     for f in fits:
         pr = pf.map_prior_of(f.estimated, prior)
         d = pf._data(f.z0, f.x0, s, pf._weights(s, bsig), False, pr)
-        lin = cv.linearise(f.theta, d, pf.regions(s))
+        lin = pf.linearise(f.theta, d, pf.regions(s))
         lam = pr.dense(f.theta.size) if pr.size else None
         errors.append(cv.cv_error(lin, cv.region_steps(lin, f.free, lam)))
     assert cv.gain(errors[0], errors[1]) < rd.MIN_CV_GAIN, (entry["effect"], errors)
