@@ -1,12 +1,17 @@
 """Real UR10 data (shared/data/ipa-robot-accuracy): the full-data figures of
 docs/real_ur10.md, and the wall time of the workflow on all poses.
 
-Runs the pose-level discrepancy workflow with cross-series validation on every pose of
-Series A (11 911) and Series B (1 495), then the extras the document quotes: the
-cross-series prediction with only camera←base refitted, the flange←probe of the two
-series compared, and the calibration of Series B with pure 1/std² weights.
+Runs the pose-level discrepancy workflow on every pose of Series A (11 911) and Series B
+(1 495) — effects named on each series by blocked cross-validation inside it, the joint
+angle error maps among the candidates — and validates each series' named model on the
+other series; then the extras the document quotes: the cross-series prediction with
+only camera←base refitted, the flange←probe of the two series compared, the calibration
+of Series B with pure 1/std² weights, and the black-box anchor.
 
     python benchmarks/bench_real_ur10.py [--every-a 1] [--every-b 1] [--json PATH] [--dictionary]
+
+Results: `benchmarks/results/real_ur10.json` (`real_ur10_dictionary.json` with
+`--dictionary`; `--json` to write elsewhere).
 
 `--dictionary` offers the dictionary's joint-angle harmonics (24 terms) as candidates
 besides the library (results: benchmarks/results/real_ur10_dictionary.json).
@@ -128,7 +133,7 @@ def main() -> None:
     ap.add_argument(
         "--dictionary",
         action="store_true",
-        help="offer the dictionary's joint-angle harmonics as candidates too",
+        help="offer the dictionary's joint-angle harmonics (1-4 cycles/rev) as candidates too",
     )
     ap.add_argument(
         "--data",
@@ -136,6 +141,9 @@ def main() -> None:
         help="the ipa-robot-accuracy data set folder (default: ../shared/data/...)",
     )
     a = ap.parse_args()
+    if a.json is None:
+        name = "real_ur10_dictionary.json" if a.dictionary else "real_ur10.json"
+        a.json = str(Path(__file__).resolve().parent / "results" / name)
     t0 = time.perf_counter()
     series = {
         "A": rd.load_series("A", a.data).every(a.every_a),
@@ -151,14 +159,25 @@ def main() -> None:
     print("named:", wf.named)
     print()
     print(wf.markdown())
-    print("candidates (round, effect, ΔBIC per fitted series, cross-series gain):")
+    print("candidates (series, round, effect, cross-validation gain, ΔBIC on the series):")
     for e in wf.candidates_tried:
-        bic = {k: round(v["delta_bic"]) for k, v in e["score"].items()}
-        gain = {k: round(v, 3) for k, v in e["cross_gain"].items()}
-        print(f"  {e['round']} {e['effect']:17s} ΔBIC {bic}  cross gain {gain}")
+        prior = e.get("map_prior")
+        hyp = (
+            f"  σ_f {prior['sigma_f_rad']:g} rad, ℓ {prior['length_scale_rad']:g} rad"
+            if prior
+            else ""
+        )
+        print(
+            f"  {e['series']} {e['round']} {e['effect']:22s} CV gain {100 * e['cv_gain']:+6.1f} %"
+            f"  ΔBIC {e['delta_bic']:9.0f}{hyp}"
+        )
+    for st in wf.steps:
+        if "term" in st:
+            print(f"maps named on {st['series']} (step {st['round']}):")
+            for line in st["term"]["words"]:
+                print("  " + line)
     extra: dict = {}
-    models = {"nominal rigid": wf.models[0], "calibration": wf.calibration}
-    models.update({f"+ {e}": m for e, m in zip(wf.named, wf.models[1:])})
+    models = {"nominal rigid": wf.nominal, "calibration": wf.calibration, "named": wf.final}
     print("\ncross-series with only camera←base refitted (flange←probe from the fitting series):")
     rows = []
     for label, m in models.items():
@@ -167,7 +186,7 @@ def main() -> None:
             rows.append({"model": label, "column": f"{key} (camera only)", **s})
     print(rd.rows_markdown(rows))
     extra["camera_only"] = rows
-    fa, fb = wf.models[0].fitted["A"], wf.models[0].fitted["B"]
+    fa, fb = wf.nominal.fitted["A"], wf.nominal.fitted["B"]
     dt, da = rd.transform_difference(fa.flange_from_probe, fb.flange_from_probe)
     dtc, dac = rd.transform_difference(fa.camera_from_base, fb.camera_from_base)
     ca, cb = wf.calibration.fitted["A"], wf.calibration.fitted["B"]
@@ -201,7 +220,7 @@ def main() -> None:
         for name, (v, s) in f.parameters().items():
             unit = "mrad" if name.startswith(("joint_offset", "link_twist")) else "mm"
             print(f"  {k} {name:22s} {v * 1e3:+.3f} ± {s * 1e3:.3f} {unit}")
-    final = wf.models[-1]
+    final = wf.final
     print("\nblack-box anchor (kernel ridge regression of the fitted series' residual on q1…q5):")
     anchor = black_box_anchor(final, series)
     for key, v in anchor.items():
@@ -233,7 +252,7 @@ def main() -> None:
             "wall_s": wall,
             "total_s": total,
             "cpu_count": os.cpu_count(),
-            **{k: doc[k] for k in ("named", "rejected", "calibration_parameters")},
+            **{k: doc[k] for k in ("named", "steps", "rejected", "calibration_parameters")},
             **{k: doc[k] for k in ("fixed_unidentifiable", "table", "candidates")},
             **extra,
         }

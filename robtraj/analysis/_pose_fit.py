@@ -16,22 +16,41 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+import scipy.linalg
 from jaxtyping import Array
 from scipy.cluster.vq import kmeans2
 
 from .._errors import UserError
-from ..estimate import covariance, identifiability, normal_at, robust_covariance, solve
+from ..estimate import (
+    GaussianPrior,
+    covariance,
+    identifiability,
+    jackknife_covariance,
+    no_prior,
+    normal_at,
+    solve,
+    term_prior,
+)
 from ..model import (
     HARMONICS,
+    MAP_KNOTS,
+    MAP_LENGTH,
+    MAP_SIGMA_F,
     Effects,
     camera_from_base_at,
     dh_corrections,
     effect_component_names,
     flange_jacobian,
     forward_kinematics,
+    joint_maps,
+    map_active,
+    map_precision,
+    map_support,
     redundant_link_parameters,
     ur10,
 )
+from ._pose_cv import Linearisation, RegionSystems
+from ._pose_normal import map_index, normal_terms
 from ._pose_series import PoseSeries
 from ._quat import rotation_angle
 
@@ -44,9 +63,13 @@ _EFFECT_ORDER = (
     "thermal_drift",
     "tracker_scale",
     "joint_harmonic",
+    "joint_map",
 )
 #: the dictionary's joint-angle harmonics, in the order of the `joint_harmonic` block
 HARMONIC_TERMS = tuple(f"joint{j + 1}_harmonic{h}" for j in range(6) for h in HARMONICS)
+#: the dictionary's joint angle error maps, in the order of the `joint_map` block (θ
+#: holds that block only in a fit that estimates or carries a map: `n_params`)
+MAP_TERMS = joint_maps(6)
 _TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
 #: regions of joint space the robust σ leaves out one at a time: the model error of a
 #: UR10 varies over the workspace, so a region must span a good part of it
@@ -79,17 +102,23 @@ def _effect_sizes(n_joints: int = 6) -> dict[str, int]:
         "thermal_drift": 3,
         "tracker_scale": 1,
         "joint_harmonic": 2 * len(HARMONICS) * n_joints,
+        "joint_map": MAP_KNOTS * n_joints,
     }
 
 
-def parameter_names(n_joints: int = 6) -> list[str]:
+def parameter_names(n_joints: int = 6, maps: bool = False) -> list[str]:
+    """Names of θ's entries; with `maps`, the joint angle error maps' knots at the end
+    (``joint2_map.k017``)."""
     names = [f"camera_from_base.{t}" for t in _TANGENT]
     names += [f"flange_from_probe.{t}" for t in _TANGENT]
     zeros = Effects.zeros(n_joints)
-    for name in _EFFECT_ORDER[:-1]:
+    for name in _EFFECT_ORDER[:-2]:
         names += effect_component_names(name, np.shape(getattr(zeros, name)))
     for t in HARMONIC_TERMS:
         names += effect_component_names(t, (2,))
+    if maps:
+        for t in MAP_TERMS:
+            names += effect_component_names(t, (MAP_KNOTS,))
     return names
 
 
@@ -101,14 +130,34 @@ def _slices(n_joints: int = 6) -> dict[str, slice]:
     return out
 
 
+#: θ entries without the maps (every fit's θ begins with them)
 N_PARAMS = len(parameter_names())
+#: entries of the map block
+N_MAP = MAP_KNOTS * 6
 _SL = _slices()
+#: the joint offsets' columns: the joints' turn columns, which the maps' columns scale
+_OFFSET = (_SL["joint_offset"].start, _SL["joint_offset"].stop)
 #: θ entries never estimated (Hayati's tilt of non-parallel axes, the last link's axis)
 _REDUNDANT = [parameter_names().index(n) for n in redundant_link_parameters(ur10())]
 
 
+def n_params(maps: bool) -> int:
+    """The length of θ, with or without the map block."""
+    return N_PARAMS + (N_MAP if maps else 0)
+
+
+def _has_maps(theta) -> bool:
+    return theta.shape[0] > N_PARAMS
+
+
 def _effects_of(theta) -> Effects:
     e = Effects.zeros(6)
+    terms = {
+        t: theta[_SL["joint_harmonic"]][2 * k : 2 * k + 2] for k, t in enumerate(HARMONIC_TERMS)
+    }
+    if _has_maps(theta):
+        m = theta[_SL["joint_map"]].reshape(6, MAP_KNOTS)
+        terms.update({t: m[k] for k, t in enumerate(MAP_TERMS)})
     return dataclasses.replace(
         e,
         joint_offset=theta[_SL["joint_offset"]],
@@ -117,9 +166,7 @@ def _effects_of(theta) -> Effects:
         joint_compliance=theta[_SL["joint_compliance"]],
         thermal_drift=theta[_SL["thermal_drift"]],
         tracker_scale=theta[_SL["tracker_scale"]][0],
-        terms={
-            t: theta[_SL["joint_harmonic"]][2 * k : 2 * k + 2] for k, t in enumerate(HARMONIC_TERMS)
-        },
+        terms=terms,
     )
 
 
@@ -134,15 +181,37 @@ def _flange(eff: Effects, joints, torque) -> jaxlie.SE3:
     gravity torques of the nominal link-mass model precomputed (they do not depend on
     the parameters; `flange_poses` recomputes them inside every Jacobian column)."""
     robot = ur10()
-    q = joints + eff.joint_offset + eff.joint_compliance * torque + _harmonic_error(eff, joints)
     dh_delta, tilt = dh_corrections(robot, eff)
+    q = _joint_angles(eff, joints, torque)
     return jax.vmap(lambda qq: forward_kinematics(robot, qq, dh_delta, tilt))(q)
+
+
+def _joint_angles(eff: Effects, joints, torque) -> Array:
+    """`(N, joints)` angles the links take: the log plus offsets, gravity deflection, the
+    harmonics and the maps (`robtraj.model.effective_joints` for static poses)."""
+    return (
+        joints
+        + eff.joint_offset
+        + eff.joint_compliance * torque
+        + _harmonic_error(eff, joints)
+        + _map_error(eff, joints)
+    )
 
 
 def _harmonic_error(eff: Effects, joints) -> Array:
     """`(N, joints)` joint-angle error of the dictionary's harmonics in `eff` [rad]."""
     c = jnp.stack([eff.terms[t] for t in HARMONIC_TERMS]).reshape(joints.shape[-1], -1)
     return jnp.einsum("njk,jk->nj", _harmonics(joints), c)
+
+
+def _map_error(eff: Effects, joints) -> Array:
+    """`(N, joints)` joint-angle error of the maps in `eff` [rad], from each angle's two
+    active knots (zero without maps)."""
+    if MAP_TERMS[0] not in eff.terms:
+        return jnp.zeros_like(joints)
+    c = jnp.stack([eff.terms[t] for t in MAP_TERMS])  # (joints, knots)
+    idx, w = map_active(joints, MAP_KNOTS)
+    return jnp.sum(w * c[jnp.arange(joints.shape[-1])[None, :, None], idx], -1)
 
 
 def _predict(theta, z0, x0, joints, drift, torque):
@@ -181,13 +250,15 @@ _GLOBAL = np.setdiff1d(np.arange(N_PARAMS), _KINEMATIC)
 
 
 def _jacobian(theta, z0, x0, joints, drift, torque, measured):
-    """The residual `(N, 6)` and its Jacobian `(N, 6, P)` by the chain rule: the
-    kinematic columns are the flange twists of `robtraj.model.flange_jacobian` carried
-    through the residual's derivative in a flange twist (6 tangents per pose), the
-    others forward-mode (16 tangents) — not forward-mode through the kinematics."""
+    """The residual `(N, 6)` and its Jacobian `(N, 6, N_PARAMS)` in the entries before the
+    maps by the chain rule: the kinematic columns are the flange twists of
+    `robtraj.model.flange_jacobian` carried through the residual's derivative in a
+    flange twist (6 tangents per pose), the others forward-mode (16 tangents) — not
+    forward-mode through the kinematics. A map's column is its joint's offset column
+    times the hat value (`_pose_normal`)."""
     robot = ur10()
     eff = _effects_of(theta)
-    q = joints + eff.joint_offset + eff.joint_compliance * torque + _harmonic_error(eff, joints)
+    q = _joint_angles(eff, joints, torque)
     dh_delta, tilt = dh_corrections(robot, eff)
     flange, g = jax.vmap(lambda qq: flange_jacobian(robot, qq, dh_delta, tilt))(q)
     # (N, 6, joints, 5) → θ columns; a joint offset moves θ, a compliance τ·θ, a
@@ -268,14 +339,20 @@ def tracker_noise(series: PoseSeries) -> float:
 class PoseFit:
     """A pose-level calibration of one series.
 
-    `theta`: full parameter vector (`parameter_names`), zero = the start; `z0`, `x0`:
-    camera←base and flange←probe at θ = 0 (``wxyz_xyz``); `free`: estimated parameters;
-    `fixed_unidentifiable`: effect parameters fixed because they are not identifiable
-    (with the direction they are confounded with); `sigma`: 1σ of the estimated
-    parameters (`np.nan` elsewhere), the larger of `sigma_model` (``s²(JᵀWJ)⁻¹`` with
-    ``s²=χ²/(n−p)``) and the delete-one-region jackknife over `REGIONS` regions of joint
-    space (`robtraj.estimate.robust_covariance`), which does not shrink when the residual
-    is model error shared by neighbouring poses (computed when first asked for).
+    `theta`: full parameter vector (`parameter_names`, with the map block when the fit
+    carries maps), zero = the start; `z0`, `x0`: camera←base and flange←probe at θ = 0
+    (``wxyz_xyz``); `free`: estimated parameters; `fixed_unidentifiable`: effect
+    parameters fixed because they are not identifiable (with the direction they are
+    confounded with); `sigma`: 1σ of the estimated parameters (`np.nan` elsewhere), the
+    larger of `sigma_model` (``s²(JᵀWJ + Λ)⁻¹``, the posterior with the prior Λ of the
+    maps, ``s² = χ²/(n − p_eff)``, p_eff the effective parameter count) and, except on
+    entries under a prior, the delete-one-region jackknife over `REGIONS` regions of
+    joint space (`robtraj.estimate.robust_covariance`), which does not shrink when the
+    residual is model error shared by neighbouring poses (computed when first asked
+    for). A map's knot is determined by the poses near it: leaving out their region
+    leaves it to its prior, which the jackknife would measure instead of the estimate.
+    `chi2` is the weighted residual sum of squares (without the prior's ``cᵀΛc``);
+    `map_prior` the maps' (σ_f, ℓ) [rad] where the fit estimates maps.
     """
 
     series: str
@@ -293,6 +370,10 @@ class PoseFit:
     angle_error: np.ndarray
     iterations: int
     converged: bool
+    effective_parameters: float = 0.0
+    map_prior: tuple[float, float] | None = None
+    #: entries under a Gaussian prior (the estimated maps' knots)
+    prior_entries: np.ndarray | None = dataclasses.field(default=None, repr=False)
     #: the region jackknife's σ on demand (None: a cross-series prediction, no effects)
     _robust: Callable[[], np.ndarray] | None = dataclasses.field(default=None, repr=False)
 
@@ -300,11 +381,18 @@ class PoseFit:
     def sigma(self) -> np.ndarray:
         if self._robust is None or not np.any(self.free[12:]):
             return self.sigma_model
-        return np.fmax(self.sigma_model, self._robust())
+        robust = np.fmax(self.sigma_model, self._robust())
+        if self.prior_entries is None:
+            return robust
+        return np.where(self.prior_entries, self.sigma_model, robust)
 
     @property
     def n_free(self) -> int:
         return int(self.free.sum())
+
+    @property
+    def has_maps(self) -> bool:
+        return self.theta.size > N_PARAMS
 
     @property
     def camera_from_base(self) -> np.ndarray:
@@ -324,11 +412,14 @@ class PoseFit:
         for e in self.estimated:
             name, idx = parse_effect_spec(e)
             v = self.theta[_SL[name]]
-            out[e] = (v if name != "joint_harmonic" or idx is None else v[idx]).tolist()
+            out[e] = (
+                v if name not in ("joint_harmonic", "joint_map") or idx is None else v[idx]
+            ).tolist()
         return out
 
     def parameters(self) -> dict[str, tuple[float, float]]:
-        """Estimated effect parameters {name: (value, σ)} in SI units."""
+        """Estimated effect parameters {name: (value, σ)} in SI units (the maps' knots
+        apart: `maps`)."""
         names = parameter_names()
         return {
             names[i]: (float(self.theta[i]), float(self.sigma[i]))
@@ -336,21 +427,48 @@ class PoseFit:
             if self.free[i]
         }
 
+    def maps(self) -> dict[int, dict[str, np.ndarray]]:
+        """The estimated joint angle error maps, {joint (1-based): {"knots": angles [rad],
+        "value": [rad], "sigma": posterior 1σ [rad], "estimated": bool per knot (False:
+        held at zero, far from the data)}}, over the whole revolution."""
+        if not self.has_maps:
+            return {}
+        out = {}
+        block = self.theta[_SL["joint_map"]].reshape(6, MAP_KNOTS)
+        sig = self.sigma_model[_SL["joint_map"]].reshape(6, MAP_KNOTS)
+        free = self.free[_SL["joint_map"]].reshape(6, MAP_KNOTS)
+        knots = np.arange(MAP_KNOTS) * 2 * np.pi / MAP_KNOTS
+        for j in range(6):
+            if free[j].any():
+                out[j + 1] = {
+                    "knots": knots,
+                    "value": block[j],
+                    "sigma": np.where(free[j], sig[j], np.nan),
+                    "estimated": free[j],
+                }
+        return out
+
     def summary(self, noise_m: float = 0.0) -> dict[str, float]:
         return error_summary(self.position_error, self.angle_error, noise_m)
 
 
 def parse_effect_spec(spec: str) -> tuple[str, list[int] | None]:
     """``"joint_compliance"`` → all its parameters; ``"joint_compliance[1,2]"`` → only
-    those elements (e.g. the joints that carry the arm's weight)."""
+    those elements (e.g. the joints that carry the arm's weight); a dictionary term
+    (``joint2_harmonic1``, ``joint2_map``) → its entries of the harmonic or map block;
+    ``"joint_map"`` → every joint's map."""
     if spec in HARMONIC_TERMS:
         k = HARMONIC_TERMS.index(spec)
         return "joint_harmonic", [2 * k, 2 * k + 1]
+    if spec in MAP_TERMS:
+        k = MAP_TERMS.index(spec)
+        return "joint_map", list(range(k * MAP_KNOTS, (k + 1) * MAP_KNOTS))
     name, _, rest = spec.partition("[")
     if name not in _SL:
         raise UserError(
-            f"effect {name!r} is not fitted at pose level (choose from {_EFFECT_ORDER} "
-            "or a joint harmonic of the dictionary, e.g. joint2_harmonic1)"
+            f"effect {name!r} is not fitted at pose level (choose from {_EFFECT_ORDER}, "
+            "a joint harmonic of the dictionary, e.g. joint2_harmonic1, or a joint angle "
+            "error map, e.g. joint2_map)"
         )
     if not rest:
         return name, None
@@ -364,8 +482,35 @@ def parse_effect_spec(spec: str) -> tuple[str, list[int] | None]:
     return name, idx
 
 
-def _free_mask(estimate: Sequence[str], rigid: Sequence[str] = ("camera", "probe")) -> np.ndarray:
-    free = np.zeros(N_PARAMS, bool)
+def uses_maps(estimate: Sequence[str]) -> bool:
+    """Whether the effects `estimate` include a joint angle error map."""
+    return any(parse_effect_spec(e)[0] == "joint_map" for e in estimate)
+
+
+def map_terms_of(estimate: Sequence[str]) -> tuple[str, ...]:
+    """The map terms (``joint2_map``) among the effects `estimate`."""
+    out = set()
+    for e in estimate:
+        name, idx = parse_effect_spec(e)
+        if name == "joint_map":
+            joints = range(6) if idx is None else {i // MAP_KNOTS for i in idx}
+            out.update(MAP_TERMS[j] for j in joints)
+    return tuple(t for t in MAP_TERMS if t in out)
+
+
+def map_knots_supported(series: PoseSeries) -> np.ndarray:
+    """`(N_MAP,)` bool: the knots of every joint's map near the series' angles
+    (`robtraj.model.map_support`); the others are held at zero, their prior mean."""
+    return np.concatenate([map_support(series.joints[:, j], MAP_KNOTS) for j in range(6)])
+
+
+def _free_mask(
+    estimate: Sequence[str],
+    rigid: Sequence[str] = ("camera", "probe"),
+    series: PoseSeries | None = None,
+    maps: bool = False,
+) -> np.ndarray:
+    free = np.zeros(n_params(maps), bool)
     if "camera" in rigid:
         free[:6] = True
     if "probe" in rigid:
@@ -378,7 +523,25 @@ def _free_mask(estimate: Sequence[str], rigid: Sequence[str] = ("camera", "probe
         else:
             free[sl.start + np.asarray(idx)] = True
     free[_REDUNDANT] = False
+    if maps and series is not None:
+        free[_SL["joint_map"]] &= map_knots_supported(series)
     return free
+
+
+def map_prior_of(
+    estimate: Sequence[str], map_prior: tuple[float, float] | None = None
+) -> GaussianPrior:
+    """The Gaussian prior of the maps among `estimate` (`robtraj.estimate.term_prior`):
+    each term's own precision, or that of `map_prior` = (σ_f, ℓ) [rad]."""
+    terms = map_terms_of(estimate)
+    if not terms:
+        return no_prior()
+    blocks = [(t, _SL["joint_map"].start + MAP_TERMS.index(t) * MAP_KNOTS) for t in terms]
+    precisions = None
+    if map_prior is not None:
+        lam = map_precision(MAP_KNOTS, *map_prior)
+        precisions = {t: lam for t in terms}
+    return term_prior(blocks, precisions)
 
 
 def _weights(series: PoseSeries, block_sigma: tuple[float, float]) -> np.ndarray:
@@ -428,9 +591,11 @@ def _rigid_residual(t12, z0, x0, flange, shift, scale, measured):
 
 class PoseData(eqx.Module):
     """One series as the engine's ``data``: start transforms z0, x0 (``wxyz_xyz``),
-    joints, drift variable, gravity torques, measured poses and ``sqrt(w)`` `(N, 6)`.
-    `rigid_only`: only the 12 rigid parameters are differentiated (nominal fits,
-    cross-series refits); the effects are evaluated once."""
+    joints, drift variable, gravity torques, measured poses, ``sqrt(w)`` `(N, 6)`, the
+    maps' active knots at the joints (`_pose_normal.map_index`) and the Gaussian prior
+    of the estimated terms that carry one. `rigid_only`: only the 12 rigid parameters
+    are differentiated (nominal fits, cross-series refits); the effects are evaluated
+    once."""
 
     z0: Any
     x0: Any
@@ -439,6 +604,9 @@ class PoseData(eqx.Module):
     torque: Any
     measured: Any
     sqrt_w: Any
+    map_index: Any
+    map_weight: Any
+    prior: GaussianPrior
     rigid_only: bool = eqx.field(static=True, default=False)
 
 
@@ -455,8 +623,10 @@ _pose_residual_jit = eqx.filter_jit(_pose_residual)
 
 
 def pose_normal(theta, d: PoseData):
-    """``(H, b, cost)`` of the weighted pose residuals (`robtraj.estimate.solve`); the
-    Jacobian of a few thousand poses is small enough to form."""
+    """``(H, b, cost)`` of the weighted pose residuals plus the prior (`robtraj.estimate.
+    solve`): the dense columns' Jacobian of a few thousand poses is small enough to
+    form, the maps' block is accumulated from their active knots (`_pose_normal`)."""
+    p = theta.shape[0]
     if d.rigid_only:
         part = _effect_part(theta, d.joints, d.drift, d.torque)
 
@@ -465,38 +635,92 @@ def pose_normal(theta, d: PoseData):
             return (d.sqrt_w * res).reshape(-1)
 
         r = r12(theta[:12])
-        j = (
-            jnp.zeros((r.shape[0], theta.shape[0]), r.dtype)
-            .at[:, :12]
-            .set(jax.jacfwd(r12)(theta[:12]))
-        )
+        j = jax.jacfwd(r12)(theta[:12])
+        h = jnp.zeros((p, p), r.dtype).at[:12, :12].set(j.T @ j)
+        b = jnp.zeros(p, r.dtype).at[:12].set(-(j.T @ r))
+        c = r @ r
     else:
-        r, j = _weighted_jacobian(theta, d)
-        r, j = r.reshape(-1), j.reshape(r.size, -1)
-    return j.T @ j, -(j.T @ r), r @ r
+        h, b, c = (x[0] for x in _group_normal(theta, d, jnp.zeros(d.joints.shape[0], int), 1))
+    return d.prior.add_to(h, b, c, theta[d.prior.index])
 
 
-def _weighted_jacobian(theta, d: PoseData):
-    """``sqrt(w)``-weighted residual `(N, 6)` and Jacobian `(N, 6, P)`."""
+def _group_normal(theta, d: PoseData, group, n_groups: int):
+    """``(H, b, cost)`` of the weighted pose residuals per group of poses (no prior)."""
     r, j = _jacobian(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
-    return d.sqrt_w * r, d.sqrt_w[..., None] * j
+    n_map = theta.shape[0] - N_PARAMS
+    return normal_terms(r, j, d.sqrt_w, _OFFSET, d.map_index, d.map_weight, n_map, group, n_groups)
 
 
-def _data(z0, x0, series: PoseSeries, w: np.ndarray, rigid_only: bool) -> PoseData:
+@functools.partial(jax.jit, static_argnames="n_groups")
+def group_terms(theta, d: PoseData, group, n_groups: int):
+    """Per group of poses (`group` `(N,)` in ``[0, n_groups)``): ``JᵀWJ`` `(G, P, P)`,
+    ``−JᵀWr`` `(G, P)`, ``rᵀWr`` `(G,)`; and the unweighted residual `(N, 6)` and dense
+    Jacobian `(N, 6, N_PARAMS)` (the maps' columns follow from it: `_pose_normal`)."""
+    r, j = _jacobian(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
+    n_map = theta.shape[0] - N_PARAMS
+    h, b, c = normal_terms(
+        r, j, d.sqrt_w, _OFFSET, d.map_index, d.map_weight, n_map, group, n_groups
+    )
+    return h, b, c, r, j
+
+
+def linearise(theta: np.ndarray, data: PoseData, label: np.ndarray) -> Linearisation:
+    """The linearisation of the pose model of `data` at `theta`, per region `label`."""
+    g = int(label.max()) + 1
+    h_g, b_g, c_g, r, j = (
+        np.asarray(a) for a in group_terms(jnp.asarray(theta), data, jnp.asarray(label), g)
+    )
+    return Linearisation(
+        theta=np.asarray(theta, float),
+        label=np.asarray(label),
+        h=h_g.sum(0),
+        b=b_g.sum(0),
+        cost=float(c_g.sum()),
+        h_g=h_g,
+        b_g=b_g,
+        r=r,
+        j=j,
+        map_index=np.asarray(data.map_index),
+        map_weight=np.asarray(data.map_weight),
+        offset=_OFFSET,
+    )
+
+
+def _data(
+    z0, x0, series: PoseSeries, w: np.ndarray, rigid_only: bool, prior: GaussianPrior | None = None
+) -> PoseData:
+    idx, wt = map_index(jnp.asarray(series.joints), MAP_KNOTS)
     return PoseData(
         *(
             jnp.asarray(a)
             for a in (z0, x0, series.joints, series.drift_variable, series.torque, series.measured)
         ),
         sqrt_w=jnp.asarray(np.sqrt(w)),
+        map_index=idx,
+        map_weight=wt,
+        prior=no_prior() if prior is None else prior,
         rigid_only=rigid_only,
     )
 
 
-def _solve(theta, free, z0, x0, series, w, max_iter=50):
-    """The engine on the weighted residuals over the `free` parameters."""
-    data = _data(z0, x0, series, w, bool(np.all(np.flatnonzero(free) < 12)))
-    sol = solve(pose_normal, data, theta, free, n_residuals=6 * series.n, max_steps=max_iter)
+#: initial damping of a fit with a prior (`robtraj.estimate.solve`): the maps are linear
+#: in their knots and the first Gauss–Newton step lands; at Optimistix's default the
+#: knots the prior determines most took ~10 steps
+PRIOR_DAMPING = 1e-4
+
+
+def _solve(theta, free, z0, x0, series, w, prior=None, max_iter=50):
+    """The engine on the weighted residuals (and the prior) over the `free` parameters."""
+    data = _data(z0, x0, series, w, bool(np.all(np.flatnonzero(free) < 12)), prior)
+    sol = solve(
+        pose_normal,
+        data,
+        theta,
+        free,
+        n_residuals=6 * series.n,
+        max_steps=max_iter,
+        damping=PRIOR_DAMPING if data.prior.size else None,
+    )
     return sol, data
 
 
@@ -508,11 +732,14 @@ def fit_poses(
     fixed: PoseFit | None = None,
     rigid: Sequence[str] = ("camera", "probe"),
     block_sigma: tuple[float, float] | None = None,
+    map_prior: tuple[float, float] | None = None,
     max_iter: int = 50,
 ) -> PoseFit:
     """Calibrate `series` at pose level (see the module docstring).
 
-    - `estimate`: effects to fit besides the rigid transforms (`_EFFECT_ORDER`).
+    - `estimate`: effects to fit besides the rigid transforms (`_EFFECT_ORDER`, the
+      dictionary's joint harmonics and joint angle error maps; ``joint_map``: every
+      joint's map).
     - `init`: start from this fit of the same series (its θ and start transforms).
     - `fixed`: a fit of *another* series whose effects are frozen here (cross-series
       prediction); only the rigid transforms named in `rigid` are refitted.
@@ -520,54 +747,77 @@ def fit_poses(
       ``"probe"`` (flange←probe).
     - `block_sigma`: unexplained σ (position [m], rotation [rad]) used for the
       weights; default: estimated from a nominal rigid fit of this series.
+    - `map_prior`: (σ_f, ℓ) [rad] of the maps' prior (`robtraj.model.map_precision`);
+      default the terms' own (`Term.precision`). A map's knots far from the series'
+      angles are held at zero, their prior mean (`map_knots_supported`).
     """
+    maps = uses_maps(estimate) or any(f is not None and f.has_maps for f in (init, fixed))
+    p = n_params(maps)
     if init is not None:
-        theta, z0, x0 = init.theta.copy(), init.z0, init.x0
+        theta, z0, x0 = _resized(init.theta, p), init.z0, init.x0
     else:
         z0, x0 = series.start
-        theta = np.zeros(N_PARAMS)
+        theta = np.zeros(p)
     if fixed is not None:
-        theta[12:] = fixed.theta[12:]
+        theta[12:] = _resized(fixed.theta, p)[12:]
         if "probe" not in rigid:
             # same probe mounting: carry the source's flange←probe over
             x0 = fixed.flange_from_probe
             theta[6:12] = 0.0
-    free = _free_mask(estimate, rigid)
+    free = _free_mask(estimate, rigid, series, maps)
+    prior = map_prior_of(estimate, map_prior) if fixed is None else no_prior()
     if block_sigma is None:
         # block weights from the residuals of a first, rigid-only pass
         sol0, d0 = _solve(
-            theta.copy(), _free_mask((), rigid), z0, x0, series, _weights(series, (1e-3, 1e-3))
+            theta.copy(),
+            _free_mask((), rigid, maps=maps),
+            z0,
+            x0,
+            series,
+            _weights(series, (1e-3, 1e-3)),
         )
         theta = sol0.theta
         block_sigma = _block_sigma(np.asarray(_pose_residual_jit(jnp.asarray(theta), d0)), series)
     w = _weights(series, block_sigma)
     if np.any(free[12:]):
+        # identifiability of the model's structure: at the effects' zero, where a null
+        # direction is exact (parallel axes, say), not at `init`'s estimate, where the
+        # estimated effects (a twist of a parallel axis) break it by rounding-size amounts
+        structure = np.where(np.arange(p) < 12, theta, 0.0)
         h0 = np.asarray(
-            normal_at(pose_normal, jnp.asarray(theta), _data(z0, x0, series, w, False))[0]
+            normal_at(pose_normal, jnp.asarray(structure), _data(z0, x0, series, w, False, prior))[
+                0
+            ]
         )
-        droppable = np.arange(N_PARAMS) >= 12
-        free, ident = identifiability(h0, parameter_names(), free, droppable, prefer=FIX_PREFERENCE)
-        theta = np.where(free | ~droppable, theta, 0.0)
+        free, ident = identifiable(h0, free)
+        theta = np.where(free | (np.arange(p) < 12), theta, 0.0)
     else:
         ident = {"dropped": [], "condition_number": float("nan")}
     if fixed is not None:
-        theta[12:] = fixed.theta[12:]
-    sol, data = _solve(theta, free, z0, x0, series, w, max_iter)
+        theta[12:] = _resized(fixed.theta, p)[12:]
+    sol, data = _solve(theta, free, z0, x0, series, w, prior, max_iter)
     theta = sol.theta
     h = np.asarray(normal_at(pose_normal, jnp.asarray(theta), data)[0])
     n_res = 6 * series.n
+    lam = data.prior.dense(p)
+    prior_cost = float(theta @ lam @ theta)
+    chi2 = sol.cost - prior_cost
     cov_unit, rank = covariance(h, free)
-    cov = cov_unit * (sol.cost / max(1, n_res - rank))
+    # effective parameter count tr((H_data + Λ)⁺ H_data): the rank without a prior
+    p_eff = float(np.sum(cov_unit * (h - lam))) if data.prior.size else float(rank)
+    cov = cov_unit * (chi2 / max(1.0, n_res - p_eff))
     sigma = np.where(free, np.sqrt(np.clip(np.diag(cov), 0.0, None)), np.nan)
 
     def robust():
-        cov_r = _region_jackknife(theta, data, free, series)
+        cov_r = _region_jackknife(theta, data, free, series, h)
         return np.where(free, np.sqrt(np.clip(np.diag(cov_r), 0.0, None)), np.nan)
 
     pred = np.asarray(
         _predict_jit(jnp.asarray(theta), *(data.z0, data.x0, data.joints, data.drift, data.torque))
     )
     pos, ang = pose_errors(pred, series.measured)
+    prior_entries = np.zeros(p, bool)
+    prior_entries[np.asarray(data.prior.index)] = True
     return PoseFit(
         series=series.name,
         estimated=tuple(estimate) if fixed is None else fixed.estimated,
@@ -576,7 +826,7 @@ def fit_poses(
         x0=np.asarray(x0),
         free=free,
         sigma_model=sigma,
-        chi2=sol.cost,
+        chi2=chi2,
         n_residuals=n_res,
         block_sigma=tuple(float(b) for b in block_sigma),
         identifiability=ident,
@@ -584,32 +834,82 @@ def fit_poses(
         angle_error=ang,
         iterations=sol.steps,
         converged=sol.converged,
+        effective_parameters=p_eff,
+        map_prior=(
+            None
+            if fixed is not None or not map_terms_of(estimate)
+            else tuple(map_prior)
+            if map_prior is not None
+            else (MAP_SIGMA_F, MAP_LENGTH)
+        ),
+        prior_entries=prior_entries,
         _robust=robust if fixed is None else None,
     )
 
 
-@jax.jit
-def _region_terms(theta, d: PoseData, onehot):
-    """Per region (`onehot` `(N, G)` assigns the poses): the normal matrix ``J_gᵀW J_g``
-    `(G, P, P)` and score ``J_gᵀW r_g`` `(G, P)` of the weighted 6-D pose residuals."""
-    r, j = _weighted_jacobian(theta, d)
-    return (
-        jnp.einsum("ng,nkp,nkq->gpq", onehot, j, j),
-        -jnp.einsum("ng,nkp,nk->gp", onehot, j, r),
-    )
+def marginal(h: np.ndarray, map_free: np.ndarray) -> np.ndarray:
+    """The normal matrix of θ's entries before the maps with the free map knots
+    (`map_free`, `(P,)` bool, True on knots only) marginalised: the Schur complement
+    ``H_dd − H_dm H_mm⁻¹ H_md``, `(N_PARAMS, N_PARAMS)` (`h` with the prior, which makes
+    the knots' block positive definite)."""
+    knots = np.flatnonzero(map_free[N_PARAMS:]) + N_PARAMS
+    rest = np.arange(N_PARAMS)
+    if not knots.size:
+        return h[np.ix_(rest, rest)]
+    d = np.sqrt(np.diag(h)[knots])
+    factor = scipy.linalg.cho_factor(h[np.ix_(knots, knots)] / np.outer(d, d))
+    cross = h[np.ix_(rest, knots)] / d
+    return h[np.ix_(rest, rest)] - cross @ scipy.linalg.cho_solve(factor, cross.T)
 
 
-def _region_jackknife(theta, data: PoseData, free, series: PoseSeries) -> np.ndarray:
-    """`robust_covariance` with the poses grouped into `REGIONS` regions of joint space
-    (k-means on the first five joints, seeded): poses near each other share the model's
-    error, poses far apart much less."""
-    g = min(REGIONS, series.n // 2)
+def identifiable(
+    h: np.ndarray, free: np.ndarray, schur: np.ndarray | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """`robtraj.estimate.identifiability` of θ's effect entries (the rigid transforms are
+    never fixed; the UR10's degeneracies fixed in the order `FIX_PREFERENCE`) from the
+    normal matrix `h` with the prior. The free knots of the maps are determined by their
+    prior: they are marginalised (`marginal`; `schur` if the caller has it) and the rest
+    is analysed, a matrix of the effects' size instead of a thousand knots'."""
+    droppable = np.arange(N_PARAMS) >= 12
+    names = parameter_names()
+    if h.shape[0] == N_PARAMS:
+        return identifiability(h, names, free, droppable, prefer=FIX_PREFERENCE)
+    schur = marginal(h, free) if schur is None else schur
+    kept, ident = identifiability(schur, names, free[:N_PARAMS], droppable, prefer=FIX_PREFERENCE)
+    return np.concatenate([kept, free[N_PARAMS:]]), ident
+
+
+def _resized(theta: np.ndarray, p: int) -> np.ndarray:
+    """θ in a layout of `p` entries (the map block added as zeros, or left out)."""
+    out = np.zeros(p)
+    k = min(p, theta.size)
+    out[:k] = theta[:k]
+    return out
+
+
+def regions(series: PoseSeries, n: int = REGIONS) -> np.ndarray:
+    """`(N,)` region of every pose in joint space (k-means on the first five joints,
+    seeded; at most `n` regions, labels ``0..G−1`` without empty ones): poses near each
+    other share the model's error, poses far apart much less."""
+    g = min(n, series.n // 2)
     if g < 2:
-        return np.full((theta.size, theta.size), np.nan)
+        return np.zeros(series.n, int)
     _, label = kmeans2(np.asarray(series.joints)[:, :5], g, seed=0, minit="++")
-    onehot = np.eye(g)[label][:, np.bincount(label, minlength=g) > 0]
-    hg, sg = (np.asarray(a) for a in _region_terms(jnp.asarray(theta), data, jnp.asarray(onehot)))
-    return robust_covariance(hg.sum(0), free, hg, sg)
+    _, label = np.unique(label, return_inverse=True)
+    return label
+
+
+def _region_jackknife(theta, data: PoseData, free, series: PoseSeries, h) -> np.ndarray:
+    """The delete-one-region jackknife (`robtraj.estimate.jackknife_covariance`, the
+    formula of `robust_covariance`) with the poses grouped into `regions` of joint
+    space, each deletion one Gauss–Newton step from the estimate, the maps' knots
+    eliminated first (`_pose_cv.RegionSystems`); `h` the posterior normal matrix."""
+    label = regions(series)
+    if label.max() < 1:
+        return np.full((theta.size, theta.size), np.nan)
+    lin = linearise(theta, data, label)
+    prior = data.prior.dense(theta.size) if data.prior.size else None
+    return jackknife_covariance(RegionSystems(lin, prior, free).steps(free)[:-1])
 
 
 def cross_predict(

@@ -21,8 +21,9 @@ Parameters: a tangent-space correction of camera←base (6) and flange←probe (
 a closed-form start (Shah's robot-world/hand-eye solution), and the `Effects` fields
 ``joint_offset`` (6), ``link_length`` (6×2 ``[Δd, Δa]``), ``link_twist`` (6×2
 ``[Δα, Δβ]``), ``joint_compliance`` (6),
-``thermal_drift`` (3) and ``tracker_scale`` (1), solved by the package's one engine
-(`robtraj.estimate.solve`). Identifiability (`robtraj.estimate.identifiability`): null
+``thermal_drift`` (3) and ``tracker_scale`` (1), the dictionary's joint harmonics and
+the joint angle error maps (``joint{j}_map``, 256 knots each under a Gaussian
+smoothness prior), solved by the package's one engine (`robtraj.estimate.solve`). Identifiability (`robtraj.estimate.identifiability`): null
 directions of the column-scaled normal matrix name the parameters that cannot be told
 apart from the rigid transforms or from each other; those effect parameters are fixed
 at zero and reported (never the rigid transforms).
@@ -34,20 +35,26 @@ nominal fit's residuals: the residual is ~35× the tracker scatter per axis (mod
 error, not noise), and Series A has no std. (On Series B, pure ``1/std²`` weights
 predict Series A about as well; see ``docs/real_ur10.md``.)
 
+Naming (`run_workflow`): on each series on its own, effects are named by blocked
+cross-validation inside that series (`_pose_selection`: regions of joint space left out
+one at a time); the maps' prior hyper-parameters are chosen the same way.
+
 Cross-series prediction: effects fitted on one series are frozen and only the rigid
 transforms (camera←base and flange←probe, or camera←base alone) are refitted on the
-other series; its error is what the model predicts for data it never saw.
+other series; its error is what the model predicts for data it never saw. The workflow
+reports it as out-of-sample validation of what each series named: the other series
+never takes part in the naming.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 
+from ..model import MAP_PRIOR_GRID, map_words
 from ._pose_fit import (
     HARMONIC_TERMS,
     PoseFit,
@@ -59,18 +66,22 @@ from ._pose_fit import (
     pose_errors,
     tracker_noise,
 )
+from ._pose_selection import MIN_CV_GAIN, Selection, select
 from ._pose_series import PoseSeries, load_series, series_from_recording
 
 __all__ = [
     "CANDIDATES",
     "CrossSeries",
+    "MIN_CV_GAIN",
     "PoseFit",
     "PoseSeries",
+    "Selection",
     "Workflow",
     "cross_predict",
     "error_summary",
     "fit_poses",
     "load_series",
+    "map_report",
     "parameter_names",
     "parse_effect_spec",
     "pose_errors",
@@ -79,7 +90,8 @@ __all__ = [
     "tracker_noise",
 ]
 
-#: effects tried by the discrepancy workflow on pose data (geometric, then non-geometric)
+#: effects tried by the discrepancy workflow on pose data (geometric, non-geometric, and
+#: every joint's angle error map as one candidate, ``joint_map``)
 #: (``joint_compliance[1,2]``: only shoulder and elbow, the joints carrying the arm's
 #: weight; the wrist joints see gravity torques of a few N·m, so their compliance is
 #: poorly determined and fits whatever else is left)
@@ -90,15 +102,14 @@ CANDIDATES = (
     "joint_compliance",
     "joint_compliance[1,2]",
     "thermal_drift",
+    "joint_map",
 )
 #: the kinematic calibration: the full geometric error set (DH lengths, twists and
 #: Hayati's tilt of parallel axes, zero offsets), its degeneracies fixed by identifiability
 CALIBRATION = ("joint_offset", "link_length", "link_twist")
-#: the dictionary's terms the pose fit takes: every joint's angle harmonics
-#: (`robtraj.model.dictionary`; ``run_workflow(candidates=CANDIDATES + DICTIONARY)``)
+#: the dictionary's joint harmonics the pose fit takes, as candidates
+#: (``run_workflow(candidates=CANDIDATES + DICTIONARY)``)
 DICTIONARY = HARMONIC_TERMS
-#: smallest relative improvement of the cross-series error that counts
-MIN_CROSS_GAIN = 0.02
 
 # ----------------------------------------------------------------------------- workflow
 
@@ -122,11 +133,15 @@ def evaluate(
     series: dict[str, PoseSeries],
     rigid: Sequence[str] = ("camera", "probe"),
     block_sigma: dict[str, tuple[float, float]] | None = None,
+    map_prior: dict[str, tuple[float, float]] | None = None,
 ) -> CrossSeries:
     """Fit `effects` on every series and predict each other series from it."""
     fitted = {
         k: fit_poses(
-            s, estimate=effects, block_sigma=None if block_sigma is None else block_sigma[k]
+            s,
+            estimate=effects,
+            block_sigma=None if block_sigma is None else block_sigma[k],
+            map_prior=None if map_prior is None else map_prior.get(k),
         )
         for k, s in series.items()
     }
@@ -143,64 +158,148 @@ def evaluate(
     return CrossSeries(tuple(effects), fitted, cross)
 
 
-def _bic(before: PoseFit, after: PoseFit) -> dict[str, Any]:
-    """Likelihood ratio with the noise scale profiled out (σ² estimated from the data)
-    and ΔBIC = LR − Δk·ln n (positive: the effect is supported)."""
-    from scipy import stats
-
-    n = after.n_residuals
-    k = after.n_free - before.n_free
-    lr = n * math.log(max(before.chi2, 1e-300) / max(after.chi2, 1e-300))
-    return {
-        "likelihood_ratio": lr,
-        "dof": k,
-        "p_value": float(stats.chi2.sf(max(lr, 0.0), max(k, 1))),
-        "delta_bic": lr - k * math.log(n),
-    }
+def _rms(fit: PoseFit) -> tuple[float, float]:
+    """Position RMS [m] and angle RMS [rad] of a fit's or a prediction's errors."""
+    return (
+        float(np.sqrt(np.mean(fit.position_error**2))),
+        float(np.sqrt(np.mean(fit.angle_error**2))),
+    )
 
 
-def _cross_cost(cs: CrossSeries) -> dict[str, tuple[float, float]]:
-    """Cross-series error per direction: position RMS [m] and angle RMS [rad]."""
-    return {
-        k: (
-            float(np.sqrt(np.mean(v.position_error**2))),
-            float(np.sqrt(np.mean(v.angle_error**2))),
-        )
-        for k, v in cs.cross.items()
-    }
+def cross_gain(before: PoseFit, after: PoseFit) -> float:
+    """Relative decrease of a prediction's error from `before` to `after`: the mean of
+    those of the position RMS and the angle RMS (negative: worse)."""
+    (p0, a0), (p1, a1) = _rms(before), _rms(after)
+    return float(0.5 * ((p0 - p1) / p0 + (a0 - a1) / a0))
+
+
+def _ranges(series: PoseSeries) -> list[tuple[float, float]]:
+    return [(float(lo), float(hi)) for lo, hi in zip(series.joints.min(0), series.joints.max(0))]
+
+
+def map_report(fit: PoseFit, series: PoseSeries) -> dict[str, Any]:
+    """A fit's joint angle error maps in words and numbers, each over the angles where
+    `series` (the fitted series) has data: ``{"words": [...], "maps": {joint: {"range_rad",
+    "knots_rad", "value_rad", "sigma_rad"}}, "prior": {"sigma_f_rad",
+    "length_scale_rad"}}`` (the knots inside the range; empty without maps)."""
+    maps = fit.maps()
+    if not maps:
+        return {}
+    ranges = _ranges(series)
+    out: dict[str, Any] = {"words": [], "maps": {}}
+    for j, m in maps.items():
+        lo, hi = ranges[j - 1]
+        out["words"].append(map_words(j, m["value"], (lo, hi)))
+        k = m["knots"]
+        inside = np.mod(k - lo, 2 * np.pi) <= hi - lo
+        turn = lo + np.mod(k - lo, 2 * np.pi)  # the knot's angle inside the range
+        order = np.argsort(turn[inside])
+        out["maps"][j] = {
+            "range_rad": [lo, hi],
+            "knots_rad": turn[inside][order].tolist(),
+            "value_rad": m["value"][inside][order].tolist(),
+            "sigma_rad": m["sigma"][inside][order].tolist(),
+        }
+    if fit.map_prior is not None:
+        out["prior"] = {"sigma_f_rad": fit.map_prior[0], "length_scale_rad": fit.map_prior[1]}
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
 class Workflow:
-    """The discrepancy workflow on pose data, validated across series.
+    """The discrepancy workflow on pose data: effects named on each series by blocked
+    cross-validation inside it, validated on the other series.
 
-    `steps`: one dict per named effect (``effect``, ``fitted`` and ``cross`` summaries,
-    per-series ``score`` and ``parameters``); `rejected`: candidates that improved
-    the fitted series (ΔBIC > 0) but not the cross-series prediction (over-fitting),
-    with the round they were tried in; `models`: the CrossSeries after each step
-    (index 0: nominal rigid); `calibration`: the kinematic calibration of item 1.
+    `selections`: per training series, its `Selection` (named steps, every candidate's
+    scores, the rejected over-fitting ones, the fits after each step); `cross`: per
+    training series, per step (0: nominal), the prediction of each other series with the
+    effects frozen and the `rigid` transforms refitted; `calibration`: the kinematic
+    calibration (`CALIBRATION`) on every series, predicting the others.
     """
 
     series: tuple[str, ...]
     rigid: tuple[str, ...]
     noise_m: dict[str, float]
-    models: list[CrossSeries]
-    steps: list[dict[str, Any]]
-    rejected: list[dict[str, Any]]
-    candidates_tried: list[dict[str, Any]]
+    selections: dict[str, Selection]
+    cross: dict[str, list[dict[str, PoseFit]]]
     calibration: CrossSeries
+    data: dict[str, PoseSeries] = dataclasses.field(repr=False, default_factory=dict)
 
     @property
-    def named(self) -> list[str]:
-        return [s["effect"] for s in self.steps]
+    def named(self) -> dict[str, list[str]]:
+        """The effects named on each series, in order."""
+        return {k: v.named for k, v in self.selections.items()}
+
+    @property
+    def nominal(self) -> CrossSeries:
+        """The nominal rigid model (only the rigid transforms fitted)."""
+        return CrossSeries((), self._fits(0), self._cross(0))
+
+    @property
+    def final(self) -> CrossSeries:
+        """Each series' named model and its predictions of the others."""
+        return CrossSeries((), self._fits(-1), self._cross(-1))
+
+    def _fits(self, k: int) -> dict[str, PoseFit]:
+        return {s: sel.fits[k] for s, sel in self.selections.items()}
+
+    def _cross(self, k: int) -> dict[str, PoseFit]:
+        return {f"{s}->{t}": f for s, c in self.cross.items() for t, f in c[k].items()}
+
+    @property
+    def steps(self) -> list[dict[str, Any]]:
+        """Every named step, with its training series (``series``), its fitted and
+        cross-series figures (``fitted``, ``cross``: error summaries) and the cross-series
+        gain it made (``cross_gain``: reported, not used to name)."""
+        out = []
+        for s, sel in self.selections.items():
+            for k, st in enumerate(sel.steps, start=1):
+                fit = sel.fits[k]
+                cross = self.cross[s][k]
+                out.append(
+                    {
+                        "series": s,
+                        **st,
+                        "fitted": fit.summary(self.noise_m[s]),
+                        "cross": {
+                            f"{s}->{t}": f.summary(self.noise_m[t]) for t, f in cross.items()
+                        },
+                        "cross_gain": {
+                            f"{s}->{t}": cross_gain(self.cross[s][k - 1][t], f)
+                            for t, f in cross.items()
+                        },
+                        "parameters": fit.parameters(),
+                        "fixed_unidentifiable": [
+                            d["parameter"] for d in fit.identifiability["dropped"]
+                        ],
+                        **({"term": _term(fit, self.data[s])} if fit.maps() else {}),
+                    }
+                )
+        return out
+
+    @property
+    def rejected(self) -> list[dict[str, Any]]:
+        return [{"series": s, **e} for s, sel in self.selections.items() for e in sel.rejected]
+
+    @property
+    def candidates_tried(self) -> list[dict[str, Any]]:
+        return [{"series": s, **e} for s, sel in self.selections.items() for e in sel.candidates]
 
     def table(self) -> list[dict[str, Any]]:
-        """Rows (model, column, figures) for the report table."""
+        """Rows (model, column, figures) for the report table: per training series the
+        nominal rigid model and each named step, fitted and predicting the others; then
+        the calibration."""
         rows = []
-        labels = ["nominal rigid"] + [f"+ {e}" for e in self.named]
-        for label, m in zip(labels, self.models):
-            for col, vals in m.row(self.noise_m).items():
-                rows.append({"model": label, "column": col, **vals})
+        for s, sel in self.selections.items():
+            labels = ["nominal rigid"] + [f"+ {e} (named on {s})" for e in sel.named]
+            for k, label in enumerate(labels):
+                rows.append(
+                    {"model": label, "column": f"fit {s}", **sel.fits[k].summary(self.noise_m[s])}
+                )
+                for t, f in self.cross[s][k].items():
+                    rows.append(
+                        {"model": label, "column": f"{s}->{t}", **f.summary(self.noise_m[t])}
+                    )
         for col, vals in self.calibration.row(self.noise_m).items():
             rows.append(
                 {
@@ -216,57 +315,58 @@ class Workflow:
         return rows_markdown(self.table())
 
     def to_json(self) -> dict[str, Any]:
-        """Named effects with their parameters per series, the rejected candidates, every
-        candidate's scores, the calibration and the report table (JSON-able)."""
-        return {
-            "series": list(self.series),
-            "rigid_refitted": list(self.rigid),
-            "noise_m": self.noise_m,
-            "named": self.named,
-            "steps": [
-                {
-                    "round": s["round"],
-                    "effect": s["effect"],
-                    "delta_bic": {k: v["delta_bic"] for k, v in s["score"].items()},
-                    "cross_gain": s["cross_gain"],
-                    "parameters": {
-                        k: {n: list(vs) for n, vs in ps.items()}
-                        for k, ps in s["parameters"].items()
-                    },
-                }
-                for s in self.steps
-            ],
-            "rejected": [{"round": e["round"], "effect": e["effect"]} for e in self.rejected],
-            "candidates": [
-                {k: v for k, v in e.items() if k != "score"}
-                | {"delta_bic": {s: v["delta_bic"] for s, v in e["score"].items()}}
-                for e in self.candidates_tried
-            ],
-            "calibration_parameters": {
-                k: {n: list(vs) for n, vs in f.parameters().items()}
-                for k, f in self.calibration.fitted.items()
-            },
-            "fixed_unidentifiable": {
-                k: f.identifiability["dropped"] for k, f in self.calibration.fitted.items()
-            },
-            "table": self.table(),
-        }
+        """Named effects per series with their parameters, cross-validation and
+        cross-series figures, the rejected candidates, every candidate's scores, the
+        calibration and the report table (JSON-able)."""
+        return _jsonable(
+            {
+                "series": list(self.series),
+                "rigid_refitted": list(self.rigid),
+                "noise_m": self.noise_m,
+                "naming": "blocked cross-validation inside each training series",
+                "named": self.named,
+                "steps": [
+                    {
+                        k: v
+                        for k, v in st.items()
+                        if k not in ("cv_before", "fits_better", "predicts_better")
+                    }
+                    | {"parameters": {n: list(vs) for n, vs in st["parameters"].items()}}
+                    for st in self.steps
+                ],
+                "rejected": [
+                    {k: e[k] for k in ("series", "round", "effect", "cv_gain", "delta_bic")}
+                    for e in self.rejected
+                ],
+                "candidates": self.candidates_tried,
+                "calibration_parameters": {
+                    k: {n: list(vs) for n, vs in f.parameters().items()}
+                    for k, f in self.calibration.fitted.items()
+                },
+                "fixed_unidentifiable": {
+                    k: f.identifiability["dropped"] for k, f in self.calibration.fitted.items()
+                },
+                "table": self.table(),
+            }
+        )
 
 
-def _relative_gain(before: dict, after: dict, which: int | None = None) -> dict[str, float]:
-    """Relative decrease of the cross-series error per direction: of the position RMS
-    (`which=0`), the angle RMS (`which=1`) or, by default, the mean of the two."""
-    out = {}
-    for k in before:
-        g = [(before[k][i] - after[k][i]) / before[k][i] for i in (0, 1)]
-        out[k] = float(0.5 * (g[0] + g[1]) if which is None else g[which])
-    return out
+def _term(fit: PoseFit, series: PoseSeries) -> dict[str, Any]:
+    """The term report of a fit with maps (`map_report`)."""
+    rep = map_report(fit, series)
+    return {"variable": "joint angles", "words": rep["words"], **rep}
 
 
-def _group(spec: str) -> str:
-    """What naming `spec` takes out of the candidates: its effect (all of
-    ``joint_compliance`` with ``joint_compliance[1,2]``), or the term itself."""
-    return spec if spec in HARMONIC_TERMS else parse_effect_spec(spec)[0]
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
 
 
 def run_workflow(
@@ -274,99 +374,79 @@ def run_workflow(
     *,
     candidates: Sequence[str] = CANDIDATES,
     rigid: Sequence[str] = ("camera", "probe"),
-    max_steps: int = 4,
-    min_cross_gain: float = MIN_CROSS_GAIN,
+    max_steps: int = 6,
+    min_gain: float = MIN_CV_GAIN,
+    prior_grid: Sequence[tuple[float, float]] = MAP_PRIOR_GRID,
     progress: Callable[[str], None] | None = None,
 ) -> Workflow:
-    """Greedy discrepancy workflow with cross-series validation.
+    """The discrepancy workflow on pose series, each series naming on its own.
 
-    Start: the nominal rigid model (only camera←base and flange←probe fitted). Each
-    round fits every remaining candidate added to the named ones on every series and
-    scores it (a) on the fitted series by a likelihood ratio with σ profiled and ΔBIC,
-    and (b) by the cross-series prediction: effects frozen, the `rigid` transforms
-    refitted on the other series. A candidate is eligible only if ΔBIC > 0 on every
-    fitted series **and** the cross-series cost (mean relative decrease of position
-    and orientation RMS) falls by at least `min_cross_gain` in every direction; the
-    eligible one with the largest summed ΔBIC is named. A candidate with ΔBIC > 0 that
-    fails (b) is recorded in `rejected` as over-fitting. Stops when none is eligible.
+    Start: the nominal rigid model (only camera←base and flange←probe fitted) on every
+    series, whose residuals set the block weights. Then, on each series alone
+    (`_pose_selection.select`): each round scores every remaining candidate added to the
+    effects named on that series by the blocked cross-validation error inside it (one
+    Gauss–Newton step per left-out region of joint space); the candidate that lowers it
+    most is named if it does so by at least `min_gain` (mean of the relative decreases of
+    the held-out position and angle RMS); the maps' prior (σ_f, ℓ) is chosen from
+    `prior_grid` the same way. A candidate that fits the series better (ΔBIC > 0) but
+    fails the cross-validation is recorded as rejected (over-fitting). Stops when no
+    candidate qualifies or after `max_steps`. Every named model is then frozen and
+    predicts the other series with only the `rigid` transforms refitted: out-of-sample
+    validation, reported and never used to name.
     """
     say = progress or (lambda _m: None)
     noise = {k: tracker_noise(s) for k, s in series.items()}
     nz = [v for v in noise.values() if v > 0]
     if nz:  # same tracker: a series without reported std gets the others' noise level
         noise = {k: (v if v > 0 else float(np.mean(nz))) for k, v in noise.items()}
-    say("nominal rigid fit")
-    current = evaluate((), series, rigid)
-    bsig = {k: v.block_sigma for k, v in current.fitted.items()}
-    models = [current]
-    named: list[str] = []
-    steps: list[dict[str, Any]] = []
-    rejected: list[dict[str, Any]] = []
-    tried: list[dict[str, Any]] = []
-    for rnd in range(max_steps):
-        taken = {_group(c) for c in named}
-        remaining = [c for c in candidates if _group(c) not in taken]
-        if not remaining:
-            break
-        base_cross = _cross_cost(current)
-        scored = {}
-        for cand in remaining:
-            say(f"round {rnd + 1}: trying {cand}")
-            cs = evaluate((*named, cand), series, rigid, bsig)
-            score = {k: _bic(current.fitted[k], cs.fitted[k]) for k in series}
-            gain = _relative_gain(base_cross, _cross_cost(cs))
-            fits_better = all(s["delta_bic"] > 0 for s in score.values())
-            predicts_better = all(g >= min_cross_gain for g in gain.values())
-            entry = {
-                "round": rnd + 1,
-                "effect": cand,
-                "score": score,
-                "cross_gain": gain,
-                "cross_gain_position": _relative_gain(base_cross, _cross_cost(cs), which=0),
-                "cross_gain_angle": _relative_gain(base_cross, _cross_cost(cs), which=1),
-                "fits_better": fits_better,
-                "predicts_better": predicts_better,
-            }
-            tried.append(entry)
-            scored[cand] = (cs, entry)
-        eligible = {
-            c: v for c, v in scored.items() if v[1]["fits_better"] and v[1]["predicts_better"]
-        }
-        for c, (_, entry) in scored.items():
-            if entry["fits_better"] and not entry["predicts_better"] and c not in eligible:
-                rejected.append(entry)
-        if not eligible:
-            break
-        best = max(
-            eligible, key=lambda c: sum(s["delta_bic"] for s in eligible[c][1]["score"].values())
+    say("nominal rigid fits")
+    nominal = {k: fit_poses(s, rigid=rigid) for k, s in series.items()}
+    bsig = {k: v.block_sigma for k, v in nominal.items()}
+    selections = {
+        k: select(
+            s,
+            nominal[k],
+            candidates,
+            rigid=rigid,
+            max_steps=max_steps,
+            min_gain=min_gain,
+            prior_grid=prior_grid,
+            progress=say,
         )
-        current, entry = eligible[best]
-        named.append(best)
-        models.append(current)
-        steps.append(
+        for k, s in series.items()
+    }
+    say("cross-series validation")
+    cross = {
+        k: [
             {
-                **entry,
-                "parameters": {k: f.parameters() for k, f in current.fitted.items()},
-                "fixed_unidentifiable": {
-                    k: [d["parameter"] for d in f.identifiability["dropped"]]
-                    for k, f in current.fitted.items()
-                },
-                "summary": current.row(noise),
+                t: nominal[t]
+                if k_step == 0
+                else cross_predict_weighted(f, series[t], rigid, bsig[t])
+                for t in series
+                if t != k
             }
-        )
-        say(f"named {best}")
+            for k_step, f in enumerate(sel.fits)
+        ]
+        for k, sel in selections.items()
+    }
     say("kinematic calibration")
     calib = evaluate(CALIBRATION, series, rigid, bsig)
     return Workflow(
         series=tuple(series),
         rigid=tuple(rigid),
         noise_m=noise,
-        models=models,
-        steps=steps,
-        rejected=rejected,
-        candidates_tried=tried,
+        selections=selections,
+        cross=cross,
         calibration=calib,
+        data=dict(series),
     )
+
+
+def cross_predict_weighted(
+    source: PoseFit, target: PoseSeries, rigid: Sequence[str], block_sigma: tuple[float, float]
+) -> PoseFit:
+    """`cross_predict` with the target's block weights given."""
+    return fit_poses(target, fixed=source, rigid=rigid, block_sigma=block_sigma)
 
 
 # ----------------------------------------------------------------------------- helpers

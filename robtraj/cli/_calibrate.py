@@ -49,7 +49,8 @@ def register(sub) -> argparse.ArgumentParser:
         metavar="NAME,...",
         help="effects to estimate as well, comma-separated: "
         + ", ".join(EFFECT_NAMES)
-        + ", or a dictionary term (e.g. joint2_harmonic1)",
+        + ", or a dictionary term (e.g. joint2_harmonic1, or joint2_map: joint 2's angle "
+        "error map, 256 knots per revolution under a Gaussian smoothness prior)",
     )
     p.add_argument(
         "--json",
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .._progress import progress_status
-    from ..model import EFFECT_NAMES, is_effect
+    from ..model import EFFECT_NAMES, is_effect, map_words, term
     from ..recording import read_recording
 
     _output.check([args.out, args.json], force=args.force)
@@ -136,6 +137,12 @@ def run(args: argparse.Namespace) -> int:
         lines.append(
             f"time offset {res.time_offset * 1e3:.4f} ms (σ {s['time_offset'] * 1e3:.4f} ms)"
         )
+    for name in res.estimated:
+        t = term(name)
+        if t is not None and t.knots:
+            q = np.asarray(rec.robot.joints)[:, t.joint]
+            c = np.asarray(res.effects[name], float)
+            lines.append(map_words(t.joint + 1, c, (float(q.min()), float(q.max()))))
     for d in res.identifiability.get("dropped", []):
         lines.append(
             f"not identifiable, fixed: {d['parameter']} (with {', '.join(d['confounded_with'])})"

@@ -35,13 +35,17 @@ def register(sub) -> argparse.ArgumentParser:
     p.add_argument(
         "--validate-on",
         metavar="OTHER.h5",
-        help="6-DOF pose recordings (robtraj import --format pose-csv): name an effect only "
-        "when, fitted on either recording, it also predicts the other one better "
-        "(cross-series rule of docs/real_ur10.md)",
+        help="6-DOF pose recordings (robtraj import --format pose-csv): each recording names "
+        "effects (the library's geometric and compliance effects, every joint's angle error "
+        "map) by blocked cross-validation inside itself, and the other one validates them "
+        "(docs/real_ur10.md)",
     )
     p.add_argument("--json", metavar="OUT", help="write the result (DESIGN section 8)")
     p.add_argument(
-        "--report", metavar="DIR", help="write figures: the gap step by step, residual structure"
+        "--report",
+        metavar="DIR",
+        help="write figures: the gap step by step, residual structure (with --validate-on: "
+        "the named joint angle error maps with their ±1σ band)",
     )
     p.add_argument(
         "--force", action="store_true", help="overwrite OUT and the figures in DIR if they exist"
@@ -129,15 +133,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _cross_series(args: argparse.Namespace) -> int:
-    """The cross-series workflow (`robtraj.analysis.real_data.run_workflow`) on two pose
-    recordings: series A is REC.h5, series B the --validate-on recording."""
+    """The pose workflow (`robtraj.analysis.real_data.run_workflow`) on two pose
+    recordings: series A is REC.h5, series B the --validate-on recording. Each names its
+    effects by cross-validation inside itself; the other validates them."""
+    import numpy as np
+
     from .._errors import UserError
     from .._progress import progress_status
     from ..analysis import real_data as rd
     from ..recording import read_recording
+    from ..report import map_figure
 
-    if args.report:
-        raise UserError("--report is not available with --validate-on (use --json)")
     series = {}
     for key, path in (("A", args.recording), ("B", args.validate_on)):
         rec = read_recording(path)
@@ -153,15 +159,56 @@ def _cross_series(args: argparse.Namespace) -> int:
     print(
         f"A = {args.recording} ({series['A'].n} poses), B = {args.validate_on} ({series['B'].n} poses)"
     )
-    for s in wf.steps:
-        bic = ", ".join(f"{k} {v['delta_bic']:.0f}" for k, v in s["score"].items())
-        gain = ", ".join(f"{k} {100 * v:+.1f} %" for k, v in s["cross_gain"].items())
-        print(f"+ {s['effect']} (round {s['round']}): ΔBIC {bic}; cross-series gain {gain}")
-    for e in wf.rejected:
-        gain = ", ".join(f"{k} {100 * v:+.1f} %" for k, v in e["cross_gain"].items())
-        print(f"  not named: {e['effect']} (fits better, predicts the other series by {gain})")
-    if not wf.steps:
-        print("no effect improves the prediction of the other series")
+    print(
+        "each series names effects by blocked cross-validation inside itself (regions of "
+        "joint space left out one at a time); the other series validates them"
+    )
+    steps = wf.steps
+    for key in wf.series:
+        print(f"named on {key}: {', '.join(wf.named[key]) or 'nothing'}")
+        for s in (s for s in steps if s["series"] == key):
+            cv0, cv1 = s["cv_before"], s["cv"]
+            cross = ", ".join(
+                f"{k} {v['pos_mean_mm']:.3f} mm / {v['ang_mean_deg']:.4f}°"
+                for k, v in s["cross"].items()
+            )
+            print(
+                f"+ {s['effect']} (round {s['round']}): cross-validation gain "
+                f"{100 * s['cv_gain']:+.1f} % (held-out position RMS {cv0['pos_rms_m'] * 1e3:.3f}"
+                f" → {cv1['pos_rms_m'] * 1e3:.3f} mm, angle RMS "
+                f"{np.rad2deg(cv0['ang_rms_rad']):.4f} → {np.rad2deg(cv1['ang_rms_rad']):.4f}°);"
+                f" ΔBIC {s['delta_bic']:.0f}; validation, not used to name: {cross}"
+            )
+            if "term" in s:
+                for line in s["term"]["words"]:
+                    print(f"  {line}")
+                prior = s["term"].get("prior")
+                if prior:
+                    print(
+                        f"  prior chosen by cross-validation on {key}: σ_f "
+                        f"{prior['sigma_f_rad'] * 1e3:g} mrad, ℓ {prior['length_scale_rad']:g} rad"
+                    )
+        for e in (e for e in wf.rejected if e["series"] == key):
+            print(
+                f"  not named: {e['effect']} (round {e['round']}: fits {key} better, ΔBIC "
+                f"{e['delta_bic']:.0f}, but the cross-validation gain is "
+                f"{100 * e['cv_gain']:+.1f} %)"
+            )
     print(wf.markdown())
     _output.write_json(args.json, wf.to_json())
+    if args.report:
+        with _output.new_folder(args.report) as tmp:
+            figs = []
+            for s in steps:
+                if "term" in s and s["round"] == max(
+                    t["round"] for t in steps if t["series"] == s["series"]
+                ):
+                    name = f"joint_maps_{s['series']}.png"
+                    map_figure(
+                        Path(tmp) / name,
+                        s["term"]["maps"],
+                        f"Joint angle error maps named on {s['series']} (±1σ)",
+                    )
+                    figs.append(Path(args.report) / name)
+        print(f"figures: {', '.join(str(f) for f in figs) or 'none (no maps named)'}")
     return 0

@@ -39,7 +39,8 @@ def register(sub) -> argparse.ArgumentParser:
         metavar="NAME=VALUE",
         help="hide a physical effect (SI units; comma-separated per joint): "
         + ", ".join(EFFECT_NAMES)
-        + ", or a dictionary term (e.g. joint2_harmonic1=SIN,COS)",
+        + ", or a dictionary term (e.g. joint2_harmonic1=SIN,COS, or joint2_map=V: a "
+        "constant V, or 256 values, one per knot)",
     )
     p.add_argument("--no-truth", action="store_true", help="leave /truth out of the file")
     p.add_argument("--force", action="store_true", help="overwrite OUT.h5 if it exists")
@@ -74,6 +75,13 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {out}: {args.scenario}, {rec.n_frames} frames at {args.rate:g} Hz "
         f"({rec.time[-1] - rec.time[0]:.1f} s), {rec.n_leds} LEDs, "
         f"{vis.sum(1).mean():.1f} seen per frame on average (min {vis.sum(1).min()}), "
-        f"effects: {', '.join(f'{k}={np.round(v, 9).tolist()}' for k, v in effects.items()) or 'none'}"
+        f"effects: {', '.join(_effect_text(k, v) for k, v in effects.items()) or 'none'}"
     )
     return 0
+
+
+def _effect_text(name: str, value) -> str:
+    v = np.asarray(value)
+    if v.size > 12:  # a joint angle error map: its range, not its knots
+        return f"{name}=[{v.size} values in {v.min():.3g}…{v.max():.3g}]"
+    return f"{name}={np.round(v, 9).tolist()}"

@@ -1,6 +1,6 @@
 """Estimation: static segments, LED registration, weighting schemes, per-frame poses, and
 the one least-squares engine (`solve`, `identifiability`, `covariance`,
-`robust_covariance`).
+`robust_covariance`; Gaussian priors on terms, `GaussianPrior`).
 
 Bundle calibration lives in `robtraj.estimate.calibration`.
 """
@@ -17,8 +17,9 @@ from ._poses import (
     led_emission_angles,
 )
 from ._poses_io import read_poses, write_poses
+from ._prior import GaussianPrior, no_prior, term_prior
 from ._registration import Registration, register_leds
-from ._solve import LeastSquares, Solution, default_solver, normal_at, solve
+from ._solve import LeastSquares, Solution, default_solver, normal_at, padded_size, solve
 from ._static import static_segments
 from ._uncertainty import (
     RCOND,
@@ -26,6 +27,7 @@ from ._uncertainty import (
     covariance,
     effective_clusters,
     identifiability,
+    jackknife_covariance,
     robust_covariance,
 )
 from ._weighting import (
@@ -42,6 +44,7 @@ __all__ = [
     "observation_angles",
     "observation_noise",
     "RCOND",
+    "GaussianPrior",
     "LeastSquares",
     "Solution",
     "column_scale",
@@ -50,8 +53,12 @@ __all__ = [
     "effective_clusters",
     "default_solver",
     "identifiability",
+    "jackknife_covariance",
+    "no_prior",
     "normal_at",
+    "padded_size",
     "solve",
+    "term_prior",
     "LedFeatures",
     "PoseEstimate",
     "Registration",

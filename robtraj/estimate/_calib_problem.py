@@ -47,6 +47,7 @@ from ..model import (
     term,
 )
 from ._calib_data import CalibrationData
+from ._prior import GaussianPrior, no_prior
 
 #: effects that change the flange pose (the forward kinematics must be re-run per step)
 KINEMATIC_EFFECTS = (
@@ -637,13 +638,32 @@ def _probe_terms(g, problem: BundleProblem, obs: ProbeObservations):
 
 class BundleData(eqx.Module):
     """What the normal equations of a bundle problem read besides θ: the problem at its
-    current values, the tracker frames in chunks, the constellation basis and the
-    optional probe poses."""
+    current values, the tracker frames in chunks, the constellation basis, the optional
+    probe poses and the Gaussian prior of the estimated terms that carry one (on θ
+    entries of g; none: `no_prior()`)."""
 
     problem: BundleProblem
     chunks: Frames
     basis: Float[Array, "leds3 c"]
     probe: ProbeObservations | None
+    prior: GaussianPrior = eqx.field(default_factory=no_prior)
+
+
+def prior_values(g: Array, data: BundleData) -> Array:
+    """The values of the prior's entries at g: the effects' current values plus their
+    corrections."""
+    pr = data.problem
+    current = [jnp.ravel(pr.effects.get(n)) for n in pr.free]
+    if not current or data.prior.size == 0:
+        return jnp.zeros(0, g.dtype)
+    values = jnp.concatenate(current) + g[12:]
+    return values[data.prior.index - 12]
+
+
+def with_prior(h, b, cost, g, data: BundleData):
+    """The normal equations with the prior added (`GaussianPrior.add_to`) on the g block
+    of θ."""
+    return data.prior.add_to(h, b, cost, prior_values(g, data))
 
 
 def split_theta(theta: Array, data: BundleData) -> tuple[Array, Array]:
@@ -656,10 +676,11 @@ def split_theta(theta: Array, data: BundleData) -> tuple[Array, Array]:
 
 def bundle_normal(theta: Array, data: BundleData):
     """``(H, b, cost)`` of the bundle problem in θ (`robtraj.estimate._solve`): LED
-    observations accumulated over the chunks, plus the probe poses."""
+    observations accumulated over the chunks, plus the probe poses, plus the prior of
+    the estimated terms that carry one (`with_prior`)."""
     g, p = split_theta(theta, data)
     terms = normal_equations(g, p, data.problem, data.chunks)
-    return _in_theta(g, data, terms)[:3]
+    return with_prior(*_in_theta(g, data, terms)[:3], g, data)
 
 
 @eqx.filter_jit
@@ -668,12 +689,14 @@ def bundle_normal_clustered(
 ):
     """`bundle_normal`, and the normal matrix `(G, P, P)` and score ``b`` `(G, P)` of each
     cluster of frames in θ (`cluster` as in `normal_equations_clustered`; each probe pose
-    is a cluster of its own, after them): the input of `robust_covariance`."""
+    is a cluster of its own, after them): the input of `robust_covariance` (the prior is
+    in the whole problem's, no cluster's)."""
     g, p = split_theta(theta, data)
     terms, (hgg, hgp, hpp, cg, cp_) = normal_equations_clustered(
         g, p, data.problem, data.chunks, cluster, n_clusters
     )
     h, b, c, probe = _in_theta(g, data, terms)
+    h, b, c = with_prior(h, b, c, g, data)
     hs = jax.vmap(h_in_theta, in_axes=(0, 0, 0, None))(hgg, hgp, hpp, data.basis)
     scores = jnp.concatenate([cg, cp_.reshape(n_clusters, -1) @ data.basis], -1)
     if probe is not None:

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from .._errors import UserError
 from ._uncertainty import RCOND, column_scale
@@ -58,25 +58,49 @@ ROUNDING = 1e-12
 
 class LeastSquares(eqx.Module):
     """The solver's view of a problem at one point ``z`` (the ``args`` of `_residual`):
-    the normal equations there, the column scale and the free mask."""
+    the normal equations of the free parameters there (padded to a fixed size `n`),
+    the column scale and the free mask (0 on the padding)."""
 
-    z: Float[Array, " p"]  # where `h`, `b`, `cost` were evaluated
-    h: Float[Array, "p p"]
-    b: Float[Array, " p"]
+    z: Float[Array, " n"]  # where `h`, `b`, `cost` were evaluated
+    h: Float[Array, "n n"]
+    b: Float[Array, " n"]
     cost: Float[Array, ""]
-    theta0: Float[Array, " p"]
-    scale: Float[Array, " p"]  # column scale D
-    free: Float[Array, " p"]  # 1 free, 0 fixed
+    scale: Float[Array, " n"]  # column scale D
+    free: Float[Array, " n"]  # 1 free, 0 padding
 
-    def theta(self, z: Float[Array, " p"]) -> Float[Array, " p"]:
-        return self.theta0 + self.free * z / self.scale
+
+class _Free(eqx.Module):
+    """Where the solver's variable sits in θ: ``θ = θ₀ + scatter(index, free·z/scale)``."""
+
+    theta0: Float[Array, " p"]
+    index: Int[Array, " n"]  # θ entry of each entry of z (padding: entry 0, weight 0)
+
+    def theta(self, problem: LeastSquares, z: Float[Array, " n"]) -> Float[Array, " p"]:
+        return self.theta0.at[self.index].add(problem.free * z / problem.scale)
+
+
+@jax.jit
+def _restrict(h, b, index):
+    """The free block of the normal equations (rows and columns `index`)."""
+    return h[index[:, None], index[None, :]], b[index]
+
+
+def padded_size(n_free: int) -> int:
+    """The size of the solver's variable for `n_free` free parameters: rounded up (to 8
+    up to 64, 32 up to 512, then 128), so that fits whose free sets differ a little
+    share a compilation of the step, and one with many parameters held pays the linear
+    algebra of the free ones only."""
+    step = 8 if n_free <= 64 else 32 if n_free <= 512 else 128
+    return max(step, -(-n_free // step) * step)
 
 
 def _compressed(z, problem: LeastSquares):
     """Square-root information residual `(p + 1,)` and its Jacobian `(p + 1, p)` at
     `problem.z` (NaN elsewhere: the normal equations are only known there)."""
     f = problem.free / problem.scale
-    hs = problem.h * jnp.outer(f, f)
+    # the padding entries: unit curvature and zero gradient, so that they never move
+    # (a zero column would leave a Gauss–Newton step undefined)
+    hs = problem.h * jnp.outer(f, f) + jnp.diag(1.0 - problem.free)
     bs = problem.b * f
     lam, v = jnp.linalg.eigh(0.5 * (hs + hs.T))
     keep = lam > RCOND * lam[-1]
@@ -149,7 +173,7 @@ _shared_initial_state = functools.lru_cache(maxsize=64)(_new_initial_state)
 
 def _placeholder(p: int) -> LeastSquares:
     z = jnp.zeros(p)
-    return LeastSquares(z, jnp.eye(p), z, jnp.zeros(()), z, jnp.ones(p), jnp.ones(p))
+    return LeastSquares(z, jnp.eye(p), z, jnp.zeros(()), jnp.ones(p), jnp.ones(p))
 
 
 def compile_steps(ahead, solver: optx.AbstractLeastSquaresSolver, p: int):
@@ -213,6 +237,8 @@ def solve(
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 50,
     start: tuple | None = None,
+    size: int | None = None,
+    damping: float | None = None,
 ) -> Solution:
     """Minimise ``cost(θ)`` over the `free` entries of θ, starting at `theta0`.
 
@@ -223,6 +249,15 @@ def solve(
       parameters is a `UserError`.
     - `solver`: any Optimistix least-squares solver (default `default_solver()`).
     - `start`: ``normal(theta0, data)`` if the caller has it already (saves a pass).
+    - `size`: the size of the solver's variable, at least the number of free entries
+      (default `padded_size` of it): the solver works on the free block of the normal
+      equations only, padded to this size; one compilation of its step per size.
+    - `damping`: the initial damping of a trust-region solver's step, relative to 1 =
+      1/`DIAGONAL` of the scaled diagonal (Optimistix's start). Smaller starts closer to
+      Gauss–Newton: for a problem nearly linear from its start (an angle error map of
+      hundreds of knots, from zero), whose determined directions span many decades of
+      curvature, the damping would otherwise hold the weakly determined ones back for
+      several steps while the trust region widens.
 
     Optimistix's own ``init``/``step``/``terminate`` run the algorithm; between steps the
     normal equations are evaluated at the point the solver asks for (compiled once, apart
@@ -244,28 +279,39 @@ def solve(
     if not (np.isfinite(float(cost)) and np.all(np.isfinite(np.asarray(h)))):
         raise UserError("the cost at the start is not finite: non-finite observations or weights?")
     solver = solver or default_solver()
-    p = theta0.shape[0]
-    z = jnp.zeros(p)
+    idx = np.flatnonzero(free)
+    n = padded_size(idx.size) if size is None else int(size)
+    if n < idx.size:
+        raise ValueError(f"size {n} is below the {idx.size} free parameters")
+    on = np.zeros(n)
+    on[: idx.size] = 1.0
+    where = _Free(theta0, jax.device_put(np.pad(idx, (0, n - idx.size)).astype(np.int32)))
+    hf, bf = _restrict(h, b, where.index)
+    scale = np.ones(n)
+    scale[: idx.size] = column_scale(np.asarray(hf))[: idx.size] / DIAGONAL**0.5
+    z = jnp.zeros(n)
     problem = LeastSquares(
         z=z,
-        h=h,
-        b=b,
+        h=hf,
+        b=bf,
         cost=cost,
-        theta0=theta0,
-        scale=jax.device_put(column_scale(np.asarray(h)) / DIAGONAL**0.5),
-        free=jax.device_put(free.astype(np.float64)),
+        scale=jax.device_put(scale),
+        free=jax.device_put(on),
     )
-    state = _initial_state(solver, p)
+    state = _initial_state(solver, n)
+    if damping is not None:
+        state = eqx.tree_at(lambda st: st.search_state.step_size, state, jnp.asarray(1.0 / damping))
     done, result, steps = False, optx.RESULTS.successful, 0
     while steps < max_steps:
         z, state, done, result, z_eval = _step(solver, z, problem, state)
         steps += 1
         if bool(done):
             break
-        theta = problem.theta(z_eval)
+        theta = where.theta(problem, z_eval)
         h, b, cost = normal_at(normal, theta, data)
-        problem = eqx.tree_at(lambda q: (q.z, q.h, q.b, q.cost), problem, (z_eval, h, b, cost))
-    theta = problem.theta(z)
+        hf, bf = _restrict(h, b, where.index)
+        problem = eqx.tree_at(lambda q: (q.z, q.h, q.b, q.cost), problem, (z_eval, hf, bf, cost))
+    theta = where.theta(problem, z)
     cost = float(jnp.sum(state.f_info.residual**2))  # |R|² = cost
     ok = bool(done) and bool(result == optx.RESULTS.successful) and bool(np.isfinite(cost))
     if ok:

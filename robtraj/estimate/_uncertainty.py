@@ -142,7 +142,16 @@ def robust_covariance(
     if g < 2:
         return np.full(np.shape(h), np.nan)
     inv, _ = _pinv(np.asarray(h, float) - np.asarray(cluster_h, float), free)
-    delta = np.einsum("gij,gj->gi", inv, s)
+    return jackknife_covariance(np.einsum("gij,gj->gi", inv, s))
+
+
+def jackknife_covariance(delta: np.ndarray) -> np.ndarray:
+    """``(G−1)/G Σ_g (δ_g − δ̄)(δ_g − δ̄)ᵀ`` of the delete-one-cluster changes `delta`
+    `(G, p)` (`robust_covariance`; a problem that solves the deletions its own way, e.g.
+    with a block it eliminates first, passes them here)."""
+    g = delta.shape[0]
+    if g < 2:
+        return np.full((delta.shape[1], delta.shape[1]), np.nan)
     dev = delta - delta.mean(0)
     return (g - 1) / g * dev.T @ dev
 

@@ -85,6 +85,7 @@ from ._compile_ahead import CompileAhead, in_background
 from ._next_poses import next_poses
 from ._noise import NoiseModel
 from ._observation_noise import observation_noise
+from ._prior import term_prior
 from ._solve import compile_steps, default_solver, normal_at, solve
 from ._uncertainty import covariance, effective_clusters, identifiability, robust_covariance
 
@@ -113,6 +114,10 @@ _OUTLIER_U = 4.0  # frames whose noise-normalised residual RMS exceeds this are 
 #: long recordings, so that there are at most `MAX_CLUSTERS`
 CLUSTER_SPAN = 0.25
 MAX_CLUSTERS = 400
+#: the cluster-robust covariance needs a `(P, P)` matrix per frame of a chunk and per
+#: cluster: above this many global parameters (a joint angle error map has hundreds) it
+#: is not computed and the Gauss–Newton (posterior) covariance is reported alone
+ROBUST_MAX_GLOBAL = 400
 #: σ above which a determined rigid-transform parameter is reported as weak: translation
 #: [m] ("t…") and rotation [rad] ("r…", 0.1 mm at 1 m): a third of the tracker's noise
 #: and what ISO 9283 accuracies of tenths of a millimetre can no longer ignore
@@ -189,6 +194,7 @@ class _Setup:
     n_residuals: int
     normal0: tuple | None
     clusters: tuple[np.ndarray, int]  # cluster of every chunked frame, their count
+    clustered: bool  # the cluster-robust covariance is computed (`ROBUST_MAX_GLOBAL`)
     noise: NoiseModel | None  # the recording's noise model where it gave the weights
     noise_info: dict[str, Any]
     ahead: CompileAhead  # the fit's later kernels, compiling on a background thread
@@ -209,6 +215,7 @@ def _solve_pass(
         solver=solver,
         max_steps=max_iter,
         start=start,
+        size=len(st.names_theta),
     )
     problem = cp.recentre(bundle.problem, sol.theta, bundle.basis)
     return dataclasses.replace(bundle, problem=problem), sol
@@ -292,6 +299,7 @@ def fit(
         clustered=robust_sigma,
     )
     noise, noise_info = st.noise, st.noise_info
+    robust_sigma = robust_sigma and st.clustered
     data, q, free, w_user = st.data, st.q, st.free, st.w_user
     held = np.array([n.split(".", 1)[0] in hold for n in st.names_theta])
     if not np.any(st.has_column & st.in_model & ~held):
@@ -371,7 +379,8 @@ def fit(
         cluster_h, scores = cluster_h[keep], scores[keep]
     else:
         h, _, chi2 = (np.asarray(x) for x in final.result())
-    chi2 = float(chi2)
+    # χ² of the observations: the normal equations' cost holds the terms' prior too
+    chi2 = float(chi2) - float(bundle.prior.cost(cp.prior_values(jnp.zeros(q), bundle)))
     n_res = 3 * int(used.sum()) + (6 * int(bundle.probe.probed.shape[0]) if bundle.probe else 0)
     cov_unit, rank = covariance(h, free_mask)
     s2 = chi2 / max(1, n_res - rank)
@@ -708,7 +717,18 @@ def _structure(
         fl = cp.fixed_flange_poses(data.robot, effects0, problem.log_time, problem.joints, chunks)
         chunks = dataclasses.replace(chunks, base_from_flange=fl)
     clusters = _clusters(data, chunks)
-    bundle = BundleData(problem=problem, chunks=chunks, basis=jax.device_put(basis), probe=probe)
+    blocks, at = [], 12
+    for name in free:
+        if name in estimated:
+            blocks.append((name, at))
+        at += int(np.size(effects0.get(name)))
+    bundle = BundleData(
+        problem=problem,
+        chunks=chunks,
+        basis=jax.device_put(basis),
+        probe=probe,
+        prior=term_prior(blocks),
+    )
     first = []
     if normal:
         theta0 = jnp.zeros(p)
@@ -790,6 +810,9 @@ def _setup(
     gnames = _global_names(effects0, free)
     q = len(gnames)
     names_theta = gnames + [f"constellation.c{j}" for j in range(3 * data.n_leds)]
+    if clustered and q > ROBUST_MAX_GLOBAL:
+        say(f"{q} global parameters: Gauss–Newton covariance only (no cluster-robust σ)")
+        clustered = False
     ahead = CompileAhead()
     structure = ahead.run(
         _structure,
@@ -870,6 +893,7 @@ def _setup(
         h0=h0,
         normal0=normal0,
         clusters=clusters,
+        clustered=clustered,
         noise=noise,
         noise_info=noise_info,
         ahead=ahead,

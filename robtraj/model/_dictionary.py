@@ -17,6 +17,16 @@ revolution; harmonics of the motor-side angle need a gear ratio, which the built
 robots do not carry), an error of the sign of the joint velocity and one of the signed square of
 the gravity torque; per tracker, LED biases along the emission axis and along the line
 of sight, and a scale per camera axis. Users add their own with `register_effect`.
+
+A term may carry a zero-mean Gaussian prior on its coefficients (`Term.precision`): the
+fits then add ``cᵀΛc`` to their cost. Each joint also has an angle error map,
+``joint{j}_map`` (`robtraj.model._joint_map`: a periodic piecewise-linear error with a
+coefficient per knot, `N_KNOTS` per revolution, under a smoothness prior). The maps are
+known wherever terms are (`Effects.terms`, `fit(estimate=...)`, `--effect`, CALIB.json,
+the pose-level fit) but are not among the discovery search's default candidates
+(`dictionary`): its score test takes every candidate's columns in one pass, and a
+few hundred coefficients per joint would make that pass and its compilation many
+times slower.
 """
 
 from __future__ import annotations
@@ -29,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
+from . import _joint_map
 
 #: joints the default dictionary has terms for (a robot uses those it has)
 MAX_JOINTS = 9
@@ -56,6 +67,12 @@ class Term:
     - `motion`: the term acts through `s`; the discrepancy search then also estimates the
       speed below which a joint counts as at rest (a deadband, by profiling
       `fit(motion_threshold=...)`).
+    - `precision`: `(k, k)` precision matrix [1/unit²] of a zero-mean Gaussian prior on
+      the coefficients, or None (no prior): every fit that estimates the term adds
+      ``cᵀΛc`` to its cost (``H += Λ``, ``b −= Λc``), and its covariance is the
+      posterior one.
+    - `knots`: the knot count of a joint angle error map (`_joint_map`), 0 otherwise.
+    - `searched`: among the discovery search's default candidates (`dictionary`).
     """
 
     name: str
@@ -69,6 +86,9 @@ class Term:
     joint: int = -1
     harmonic: int = 0
     motion: bool = False
+    precision: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
+    knots: int = 0
+    searched: bool = True
 
     @property
     def size(self) -> int:
@@ -123,6 +143,25 @@ def _torque_squared(j: int) -> Term:
     )
 
 
+def _map(j: int) -> Term:
+    n = _joint_map.N_KNOTS
+    v = f"q{j + 1}"
+    return Term(
+        name=f"joint{j + 1}_map",
+        kind="joint",
+        components=tuple(f"k{k:03d}" for k in range(n)),
+        unit="rad",
+        fn=lambda q, s, tau: _joint_map.features(q[j], n),
+        variable=v,
+        function=f"Σₖ cₖ·φₖ({v}): periodic hat functions on {n} knots per revolution",
+        frame_variable=f"joint {j + 1}",
+        joint=j,
+        precision=_joint_map.precision(n),
+        knots=n,
+        searched=False,
+    )
+
+
 def _u(theta):
     return (1.0 - jnp.cos(theta)) / _U_REF
 
@@ -173,7 +212,7 @@ def default_terms(n_joints: int = MAX_JOINTS) -> tuple[Term, ...]:
     for j in range(n_joints):
         out += [_harmonic(j, h) for h in HARMONICS]
         out += [_velocity_sign(j), _torque_squared(j)]
-    return (*out, *_led_terms())
+    return (*out, *_led_terms(), *(_map(j) for j in range(n_joints)))
 
 
 _REGISTRY: dict[str, Term] = {t.name: t for t in default_terms()}
@@ -194,6 +233,7 @@ def register_effect(
     function: str = "",
     frame_variable: str | None = None,
     motion: bool = False,
+    precision: np.ndarray | None = None,
 ) -> Term:
     """Add a term of the user's to the dictionary (the discrepancy search then tries it).
 
@@ -206,7 +246,9 @@ def register_effect(
     emission angle, returning `(..., 3, k)`. `fn` must be a JAX function (it is
     differentiated and compiled). `motion`: a joint term that acts through `s` (the
     discrepancy search then also estimates the speed below which a joint counts as at
-    rest). Returns the `Term`; a name already taken raises `UserError`.
+    rest). `precision`: `(k, k)` precision matrix [1/unit²] of a zero-mean Gaussian
+    prior on the coefficients (`Term.precision`), None for none. Returns the `Term`; a
+    name already taken raises `UserError`.
     """
     if not name.isidentifier():
         raise UserError(f"effect name {name!r} must be an identifier")
@@ -221,6 +263,13 @@ def register_effect(
     comps = tuple(components)
     if not comps:
         raise UserError("a term needs at least one coefficient")
+    if precision is not None:
+        precision = np.asarray(precision, float)
+        if precision.shape != (len(comps), len(comps)) or not np.allclose(precision, precision.T):
+            raise UserError(
+                f"precision must be a symmetric {len(comps)}×{len(comps)} matrix, "
+                f"got shape {precision.shape}"
+            )
     j = -1 if kind == "led" else int(joint) - 1
     term = Term(
         name=name,
@@ -234,6 +283,7 @@ def register_effect(
         or (f"joint {j + 1}" if kind == "joint" else "emission angle"),
         joint=j,
         motion=bool(motion),
+        precision=precision,
     )
     _REGISTRY[name] = term
     _USER.append(name)
@@ -259,9 +309,16 @@ def term(name: str) -> Term | None:
 
 
 def dictionary(n_joints: int) -> tuple[str, ...]:
-    """Names of the dictionary's terms for a robot of `n_joints` joints: the built-in
-    ones and those registered, in that order."""
-    return tuple(t.name for t in _REGISTRY.values() if t.joint < n_joints)
+    """Names of the dictionary's terms for a robot of `n_joints` joints that the discovery
+    search tries by default: the built-in ones and those registered, in that order (not
+    the joint angle error maps, `Term.searched`)."""
+    return tuple(t.name for t in _REGISTRY.values() if t.joint < n_joints and t.searched)
+
+
+def joint_maps(n_joints: int) -> tuple[str, ...]:
+    """Names of the joint angle error maps (``joint{j}_map``) of a robot of `n_joints`
+    joints."""
+    return tuple(t.name for t in _REGISTRY.values() if t.knots and t.joint < n_joints)
 
 
 def term_names() -> tuple[str, ...]:
@@ -342,6 +399,8 @@ def describe(t: Term, values: np.ndarray, cov: np.ndarray) -> str:
     values = np.asarray(values, float)
     cov = np.asarray(cov, float)
     sig = np.sqrt(np.clip(np.diag(cov), 0, None))
+    if t.knots:
+        return _joint_map.words(t.joint + 1, values, None)
     if t.harmonic:
         a, sa, phi, sp = amplitude_phase(values, cov)
         return (

@@ -2,6 +2,7 @@
 
 from ._discrepancy_figures import (
     gap_figure as gap_figure,
+    map_figure as map_figure,
     noise_figure as noise_figure,
     structure_figure as structure_figure,
 )

@@ -92,3 +92,31 @@ def noise_figure(path, noise) -> Path:
         f"level ±{100 * noise.level_rel_se:.1f} %)"
     )
     return _save(fig, path)
+
+
+def map_figure(path, maps: dict, title: str) -> Path:
+    """Joint angle error maps: per joint, the fitted map [mrad] over the joint angle [rad]
+    where the data are, with its ±1σ posterior band; `maps` as `map_report`'s
+    ``"maps"`` ({joint: {"knots_rad", "value_rad", "sigma_rad", "range_rad"}})."""
+    joints = sorted(maps)
+    cols = min(3, len(joints))
+    rows = -(-len(joints) // cols)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(4.6 * cols, 3.0 * rows), constrained_layout=True, squeeze=False
+    )
+    for ax, j in zip(axes.ravel(), joints):
+        m = maps[j]
+        q = np.asarray(m["knots_rad"])
+        v = np.asarray(m["value_rad"]) * 1e3
+        s = np.asarray(m["sigma_rad"], float) * 1e3
+        ax.fill_between(q, v - s, v + s, color="C0", alpha=0.3, lw=0, label="±1σ")
+        ax.plot(q, v, color="C0", lw=1.2, label="map")
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_xlabel(f"q{j} [rad]")
+        ax.set_ylabel("angle error [mrad]")
+        ax.set_title(f"joint {j}")
+    for ax in axes.ravel()[len(joints) :]:
+        ax.set_visible(False)
+    axes.ravel()[0].legend(fontsize=8)
+    fig.suptitle(title)
+    return _save(fig, path)

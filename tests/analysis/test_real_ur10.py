@@ -2,7 +2,8 @@
 calibration, identifiability, and the discrepancy workflow validated across series.
 
 Subsampled to keep the suite fast: 500 evenly spaced poses of each series (the same
-length, so every kernel compiles once); the full-data figures are in docs/real_ur10.md.
+length, so every kernel compiles once); the full-data figures are in docs/real_ur10.md
+and `test_full_data_figures` (exhaustive, on demand).
 """
 
 from pathlib import Path
@@ -34,18 +35,17 @@ def series():
 def workflow(series):
     from robtraj.analysis import real_data as rd
 
-    return rd.run_workflow(series)
+    # the dictionary's joint harmonics offered besides the library and the maps
+    return rd.run_workflow(series, candidates=rd.CANDIDATES + rd.DICTIONARY)
 
 
-def _cross(model, key):
-    """Cross-series position RMS [m] and orientation RMS [rad]."""
-    f = model.cross[key]
+def _rms(f):
+    """Position RMS [m] and orientation RMS [rad] of a fit's or a prediction's errors."""
     return float(np.sqrt(np.mean(f.position_error**2))), float(np.sqrt(np.mean(f.angle_error**2)))
 
 
 def test_nominal_rigid_model_explains_the_data_to_about_a_millimetre(workflow):
-    nominal = workflow.models[0]
-    for name, f in nominal.fitted.items():
+    for name, f in workflow.nominal.fitted.items():
         s = f.summary(workflow.noise_m[name])
         assert 0.3 < s["pos_mean_mm"] < 1.5, s
         assert s["pos_max_mm"] < 4.0, s
@@ -99,51 +99,113 @@ def test_weights_come_from_the_tracker_std_where_present(series):
     assert np.ptp(wa[:, 0]) == 0
 
 
-def test_named_effects_reduce_the_cross_series_prediction_error(workflow):
-    """Each named effect lowers the other series' position error in both directions, and
-    the naming rule's cost (mean of the position and orientation RMS decreases) by ≥ 2 %,
-    recomputed here from the models themselves."""
-    assert workflow.named, "nothing named"
-    assert workflow.named[:2] == ["link_twist", "link_length"], workflow.named
-    for before, after in zip(workflow.models[:-1], workflow.models[1:]):
-        for key in ("A->B", "B->A"):
-            (p0, a0), (p1, a1) = _cross(before, key), _cross(after, key)
-            assert p1 < p0, (after.effects, key, p0, p1)
-            assert 0.5 * ((p0 - p1) / p0 + (a0 - a1) / a0) >= 0.02, (after.effects, key)
-    for step in workflow.steps:
-        assert step["predicts_better"] and step["fits_better"]
-        assert all(g >= 0.02 for g in step["cross_gain"].values())
+def test_each_series_names_the_maps_and_the_geometry_by_its_own_cross_validation(workflow):
+    """Each series names, by cross-validation inside itself, every joint's angle error
+    map and the link geometry, each step lowering its held-out error by ≥ 2 %; no
+    harmonic of the dictionary is named (the maps carry what they could)."""
+    from robtraj.analysis import real_data as rd
+
+    for key, named in workflow.named.items():
+        assert {"joint_map", "link_twist", "link_length"} <= set(named), (key, named)
+        assert not any("harmonic" in n for n in named), (key, named)
+    for st in workflow.steps:
+        assert st["cv_gain"] >= rd.MIN_CV_GAIN and st["predicts_better"]
+        assert st["cv"]["pos_rms_m"] < st["cv_before"]["pos_rms_m"]
+    for key, sel in workflow.selections.items():
+        for before, after in zip(sel.steps[:-1], sel.steps[1:]):
+            assert after["cv_before"] == pytest.approx(before["cv"], rel=0.02)
+
+
+def test_the_validation_series_takes_no_part_in_naming(workflow, series):
+    """Series A's selection on its own (no Series B anywhere) names the same effects with
+    the same cross-validation figures as the workflow run on both."""
+    from robtraj.analysis import _pose_selection as ps, real_data as rd
+
+    alone = ps.select(
+        series["A"],
+        pf.fit_poses(series["A"]),
+        rd.CANDIDATES + rd.DICTIONARY,
+        prior_grid=rd.MAP_PRIOR_GRID,
+    )
+    assert alone.named == workflow.named["A"]
+    for a, b in zip(alone.steps, workflow.selections["A"].steps):
+        assert a["cv"] == pytest.approx(b["cv"], rel=1e-6)
+
+
+def test_the_named_models_predict_the_other_series_better(workflow, series):
+    """Validation on the series that took no part: each named model predicts the other
+    series better than the nominal one and than the library's named model (link twists,
+    lengths, shoulder and elbow compliance, without the maps), by more than five
+    standard errors of the paired per-pose difference; and within the issue's targets
+    (mean ≤ 0.35 mm, ≤ 0.07°)."""
+    from robtraj.analysis import real_data as rd
+
+    bsig = {k: f.block_sigma for k, f in workflow.nominal.fitted.items()}
+    library = rd.evaluate(
+        ("link_twist", "link_length", "joint_compliance[1,2]"), series, block_sigma=bsig
+    )
+    final = workflow.final
+    for key in ("A->B", "B->A"):
+        got = final.cross[key]
+        for ref in (workflow.nominal.cross[key], library.cross[key]):
+            d = ref.position_error - got.position_error
+            assert d.mean() > 5 * d.std() / np.sqrt(d.size), key
+            assert _rms(got)[1] < _rms(ref)[1], key
+        s = got.summary()
+        assert s["pos_mean_mm"] <= 0.35 and s["ang_mean_deg"] <= 0.07, (key, s)
+        # the gain each step made across series is reported beside the naming figures
+    assert all(
+        set(st["cross_gain"]) == {f"{st['series']}->{'B' if st['series'] == 'A' else 'A'}"}
+        for st in workflow.steps
+    )
 
 
 def test_overfitting_effects_are_not_named(workflow):
-    """A candidate that improves the fitted series (ΔBIC > 0) but not the other series'
-    prediction is rejected in that round, never named."""
-    for k, step in enumerate(workflow.steps, start=1):
-        rejected_now = {e["effect"] for e in workflow.rejected if e["round"] == k}
-        assert step["effect"] not in rejected_now
+    """A candidate that fits its series better (ΔBIC > 0) but does not lower its
+    cross-validation error by 2 % is rejected in that round, never named; on Series A
+    the joint harmonics are (the old cross-series rule rejected them too)."""
+    for st in workflow.steps:
+        now = {
+            e["effect"]
+            for e in workflow.rejected
+            if e["round"] == st["round"] and e["series"] == st["series"]
+        }
+        assert st["effect"] not in now
     for entry in workflow.rejected:
         assert entry["fits_better"] and not entry["predicts_better"]
-    assert workflow.rejected, "expected at least one effect that only helps the fitted series"
+    harmonics = {
+        e["effect"] for e in workflow.rejected if e["series"] == "A" and "harmonic" in e["effect"]
+    }
+    assert len(harmonics) >= 6, harmonics
 
 
-def test_a_rejected_effect_helps_the_fitted_series_but_not_the_other(workflow, series):
-    """Independent of the workflow's bookkeeping: refit the first rejected candidate on top
-    of what was named before it and compare with that model directly."""
-    from robtraj.analysis import real_data as rd
+def test_a_rejected_effect_helps_the_fitted_series_but_not_its_cross_validation(workflow, series):
+    """Independent of the selection's bookkeeping (one step from the current model):
+    refit the first rejected candidate on top of what was named before it, and the model
+    without it; the candidate lowers the series' χ² but, with each model's blocked
+    cross-validation taken at its own optimum, not its held-out error by 2 %."""
+    from robtraj.analysis import _pose_cv as cv, real_data as rd
 
-    entry = workflow.rejected[0]
-    before = workflow.models[entry["round"] - 1]
-    bsig = {k: f.block_sigma for k, f in workflow.models[0].fitted.items()}
-    after = rd.evaluate((*before.effects, entry["effect"]), series, block_sigma=bsig)
-    for k in series:  # better on the series it was fitted to ...
-        assert after.fitted[k].chi2 < before.fitted[k].chi2
-    worse = [  # ... but not clearly better predicting the other one, in some direction
-        key
-        for key in ("A->B", "B->A")
-        if _cross(after, key)[0] > (1 - rd.MIN_CROSS_GAIN) * _cross(before, key)[0]
-        or _cross(after, key)[1] > (1 - rd.MIN_CROSS_GAIN) * _cross(before, key)[1]
+    entry = next(e for e in workflow.rejected if "harmonic" not in e["effect"])
+    key = entry["series"]
+    sel = workflow.selections[key]
+    before = sel.named[: entry["round"] - 1]
+    s = series[key]
+    bsig = workflow.nominal.fitted[key].block_sigma
+    prior = sel.fits[entry["round"] - 1].map_prior
+    fits = [
+        pf.fit_poses(s, estimate=est, block_sigma=bsig, map_prior=prior)
+        for est in (tuple(before), (*before, entry["effect"]))
     ]
-    assert worse, (entry["effect"], entry["cross_gain"])
+    assert fits[1].chi2 < fits[0].chi2
+    errors = []
+    for f in fits:
+        pr = pf.map_prior_of(f.estimated, prior)
+        d = pf._data(f.z0, f.x0, s, pf._weights(s, bsig), False, pr)
+        lin = pf.linearise(f.theta, d, pf.regions(s))
+        lam = pr.dense(f.theta.size) if pr.size else None
+        errors.append(cv.cv_error(lin, cv.region_steps(lin, f.free, lam)))
+    assert cv.gain(errors[0], errors[1]) < rd.MIN_CV_GAIN, (entry["effect"], errors)
 
 
 def test_report_table_has_the_figures(workflow):
@@ -151,7 +213,8 @@ def test_report_table_has_the_figures(workflow):
     models = {r["model"] for r in rows}
     assert "nominal rigid" in models
     assert any(m.startswith("calibration") for m in models)
-    assert {f"+ {e}" for e in workflow.named} <= models
+    for key, named in workflow.named.items():
+        assert {f"+ {e} (named on {key})" for e in named} <= models
     cols = {r["column"] for r in rows}
     assert cols == {"fit A", "fit B", "A->B", "B->A"}
     for r in rows:
@@ -159,6 +222,33 @@ def test_report_table_has_the_figures(workflow):
             assert np.isfinite(r[k])
     md = workflow.markdown()
     assert md.count("\n") == len(rows) + 2
+
+
+def test_the_maps_in_words_numbers_and_a_figure(workflow, tmp_path):
+    """Every named map is reported in words (joint, RMS, peak, strongest periodic
+    component, the range of the data), with its knots, values and posterior σ (JSON),
+    and drawn with its ±1σ band."""
+    import json
+
+    from robtraj.report import map_figure
+
+    doc = json.loads(json.dumps(workflow.to_json()))
+    maps = [st for st in doc["steps"] if "term" in st]
+    assert {st["series"] for st in maps} == {"A", "B"}
+    for st in maps:
+        words = st["term"]["words"]
+        assert len(words) == 6
+        for j, w in enumerate(words, start=1):
+            assert w.startswith(f"joint {j} angle error map: rms ") and "cycles/rev" in w
+            assert f"over q{j} ∈ [" in w and "(where the data are)" in w
+        for m in st["term"]["maps"].values():
+            assert len(m["knots_rad"]) == len(m["value_rad"]) == len(m["sigma_rad"]) > 10
+            assert np.all(np.diff(m["knots_rad"]) > 0)
+            sig = np.asarray(m["sigma_rad"], float)
+            assert np.all(sig[np.isfinite(sig)] > 0)
+        assert st["term"]["prior"]["sigma_f_rad"] > 0
+    png = map_figure(tmp_path / "maps.png", maps[-1]["term"]["maps"], "maps")
+    assert png.stat().st_size > 10_000
 
 
 def test_recording_adapter_matches_the_csv_reader():
@@ -180,7 +270,8 @@ def test_recording_adapter_matches_the_csv_reader():
 
 def test_pose_model_is_the_package_forward_model(series):
     """The fast pose-level predictor equals `robtraj.model.flange_poses` composed with
-    the rigid transforms, with every effect switched on."""
+    the rigid transforms, with every effect switched on (the maps from their two active
+    knots there, from every hat feature in the model)."""
     import jax
     import jax.numpy as jnp
     import jaxlie
@@ -190,7 +281,7 @@ def test_pose_model_is_the_package_forward_model(series):
 
     s = series["B"]
     rng = np.random.default_rng(0)
-    theta = rng.normal(0, 1e-3, pf.N_PARAMS)
+    theta = rng.normal(0, 1e-3, pf.n_params(True))
     theta[pf._SL["joint_compliance"]] = rng.normal(0, 1e-5, 6)
     z0, x0 = s.start
     pred = np.asarray(
@@ -225,7 +316,10 @@ def test_pose_model_is_the_package_forward_model(series):
     ref = jax.jit(jax.jacfwd(pf._raw_residual))(jnp.asarray(theta), *args)
     scale = np.abs(np.asarray(ref)).max((0, 1))
     scale = np.where(scale > 0, scale, 1.0)  # compliance of joints without gravity torque
-    np.testing.assert_allclose(np.asarray(jac) / scale, np.asarray(ref) / scale, atol=1e-12)
+    ref = np.asarray(ref)[..., : pf.N_PARAMS]  # the maps' columns: test_pose_maps.py
+    np.testing.assert_allclose(
+        np.asarray(jac) / scale[: pf.N_PARAMS], ref / scale[: pf.N_PARAMS], atol=1e-12
+    )
 
 
 @pytest.mark.exhaustive
@@ -424,7 +518,7 @@ def test_same_optimum_as_the_previous_solver(series):
             dt, da = rd_transform_difference(got, np.asarray(want))
             assert dt < 1e-6 and da < 1e-6
     for key in ("A->B", "B->A"):
-        assert abs(_cross(cal, key)[0] - _REF[key]) < 1e-6
+        assert abs(_rms(cal.cross[key])[0] - _REF[key]) < 1e-6
 
 
 def rd_transform_difference(a, b):
@@ -456,8 +550,9 @@ def test_series_a_and_b_agree_within_their_robust_sigma(series):
 
 def test_cross_series_discrepancy_from_the_command_line(tmp_path, capsys):
     """`robtraj import` → `robtraj discrepancy A.h5 --validate-on B.h5`: the product runs the
-    cross-series workflow on imported recordings (every 80th pose of A, every 10th of B;
-    the workflow itself is tested on 500 poses above): what it prints is what it writes."""
+    pose workflow on imported recordings (200 poses of each; the workflow itself is tested
+    on 500 poses above): what it prints is what it writes, with the maps in words and
+    their figure."""
     import json
     import sys
 
@@ -470,23 +565,38 @@ def test_cross_series_discrepancy_from_the_command_line(tmp_path, capsys):
     recs = {}
     for key, name in (("A", "measurements_grid"), ("B", "measurements_joint_configurations")):
         lines = (DATA / f"Series_{key}" / f"{name}.csv").read_text().splitlines(keepends=True)
-        keep = np.linspace(0, len(lines) - 2, N_POSES).round().astype(int) + 1
+        keep = np.linspace(0, len(lines) - 2, 200).round().astype(int) + 1
         src = tmp_path / f"{key}.csv"
         src.write_text("".join([lines[0], *(lines[i] for i in keep)]))
         recs[key] = tmp_path / f"{key}.h5"
         assert main(["import", str(src), "-o", str(recs[key]), "--preset", "ipa-ur10"]) == 0
     out = tmp_path / "wf.json"
+    figs = tmp_path / "figs"
     code, stdout, _ = run_cli(
-        capsys, "discrepancy", recs["A"], "--validate-on", recs["B"], "--json", out
+        capsys,
+        "discrepancy",
+        recs["A"],
+        "--validate-on",
+        recs["B"],
+        "--json",
+        out,
+        "--report",
+        figs,
     )
     assert code == 0 and "| model |" in stdout
     doc = json.loads(out.read_text())
     assert doc["series"] == ["A", "B"] and "nominal rigid" in {r["model"] for r in doc["table"]}
+    assert "cross-validation" in doc["naming"]
     for step in doc["steps"]:
         assert f"+ {step['effect']} (round {step['round']})" in stdout
+        for line in step.get("term", {}).get("words", []):
+            assert line in stdout
     for r in doc["rejected"]:
         assert f"not named: {r['effect']}" in stdout
     assert len(doc["candidates"]) >= len(rd.CANDIDATES)
+    for key, named in doc["named"].items():
+        if "joint_map" in named:
+            assert (figs / f"joint_maps_{key}.png").is_file()
     # an LED recording has no poses to validate on
     from robtraj import write_recording
     from robtraj.sim import simulate
@@ -495,3 +605,34 @@ def test_cross_series_discrepancy_from_the_command_line(tmp_path, capsys):
     write_recording(simulate("paper", duration=2.0, rate=50.0), led)
     code, _, err = run_cli(capsys, "discrepancy", recs["A"], "--validate-on", led)
     assert_one_line_error(code, err, "pose recordings")
+
+
+@pytest.mark.exhaustive
+def test_full_data_figures():
+    """All poses (about 4 min): each series' named model predicts the other within the
+    issue's targets (mean ≤ 0.35 mm, ≤ 0.07°), and the maps fitted on A and on B agree:
+    over the knots both reach, each joint's two maps correlate better at their own
+    angles than shifted against each other by 0.1 rad or more (the error is locked to
+    the joint angle)."""
+    from robtraj.analysis import real_data as rd
+
+    series = {k: rd.load_series(k, DATA) for k in ("A", "B")}
+    wf = rd.run_workflow(series)
+    for key in ("A->B", "B->A"):
+        s = wf.final.cross[key].summary()
+        assert s["pos_mean_mm"] <= 0.35 and s["ang_mean_deg"] <= 0.07, (key, s)
+    maps = {k: wf.final.fitted[k].maps() for k in ("A", "B")}
+    for j in range(1, 7):
+        a, b = maps["A"][j], maps["B"][j]
+        both = a["estimated"] & b["estimated"]
+        k = int(round(0.1 / (2 * np.pi / both.size)))
+
+        def corr(shift):
+            vb = np.roll(b["value"], shift)
+            on = both & np.roll(both, shift)
+            return np.corrcoef(a["value"][on], vb[on])[0, 1]
+
+        shifted = [corr(sh) for sh in range(k, 3 * k + 1)] + [
+            corr(-sh) for sh in range(k, 3 * k + 1)
+        ]
+        assert corr(0) > max(shifted), (j, corr(0), max(shifted))

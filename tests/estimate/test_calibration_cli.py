@@ -84,3 +84,35 @@ def test_calibrates_a_recording_imported_from_pose_csv(tmp_path, capsys):
     assert doc["gauge"]["kind"] == "probe"
     # the nominal UR10 explains the probe poses to about a millimetre (docs/real_ur10.md)
     assert doc["residual_rms_m"] < 3e-3
+
+
+def test_a_joint_angle_error_map_from_simulate_to_calibrate_and_evaluate(tmp_path, capsys):
+    """`simulate --effect joint2_map=V` hides a constant map (a joint-2 offset of V);
+    `calibrate --estimate joint2_map` fits the map under its prior, says it in words and
+    writes it to CALIB.json, where it recovers V over the angles the arm reached within
+    3 posterior σ; `evaluate` takes the calibration back."""
+    import numpy as np
+
+    from robtraj.model import map_active
+
+    rec = tmp_path / "rec.h5"
+    value = 3e-4
+    args = ["--scenario", "calibration", "--duration", "16", "--rate", "25", "--seed", "3"]
+    assert main(["simulate", str(rec), *args, "--effect", f"joint2_map={value}"]) == 0
+    assert "joint2_map=[256 values" in capsys.readouterr().out
+    out = tmp_path / "calib.json"
+    assert main(["calibrate", str(rec), "-o", str(out), "--estimate", "joint2_map"]) == 0
+    printed = capsys.readouterr().out
+    assert "joint 2 angle error map: rms" in printed
+    doc = json.loads(out.read_text())
+    c = np.asarray(doc["effects"]["joint2_map"])
+    assert c.shape == (256,)
+    from robtraj import read_recording
+
+    q2 = np.asarray(read_recording(rec).robot.joints)[:, 1]
+    knots = np.unique(map_active(q2)[0])
+    names = doc["covariance"]["parameters"]
+    idx = [names.index(f"joint2_map.k{k:03d}") for k in knots]
+    sigma = np.sqrt(np.diag(np.asarray(doc["covariance"]["matrix"]))[idx])
+    assert np.all(np.abs(c[knots] - value) <= 3 * sigma + 1e-12), (c[knots], sigma)
+    assert main(["evaluate", str(rec), "--calibration", str(out)]) == 0

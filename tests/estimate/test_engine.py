@@ -178,3 +178,81 @@ def test_a_null_direction_of_parameters_that_cannot_be_fixed_is_named_undetermin
     free, rep = identifiability(h, names, np.ones(4, bool), np.zeros(4, bool))
     assert list(free) == [True] * 4 and rep["dropped"] == []
     assert rep["undetermined"] == ["camera_from_base.tx", "flange_from_tool.tx"]
+
+
+def test_bundle_normal_equations_with_a_joint_map_add_its_prior():
+    """A joint angle error map estimated: its columns (dense hat features) are those of
+    `residuals` through `jax.jacfwd`, and the normal equations add the term's prior,
+    ``H + Λ``, ``b − Λc``, ``cost + cᵀΛc``, on its entries only."""
+    from robtraj.estimate import calibration as cal
+    from robtraj.model import term
+    from robtraj.sim import simulate
+
+    rec = simulate("paper", seed=0, duration=8.0, rate=25.0)
+    st = cal._setup(rec, ("joint_offset", "joint2_map"), None, None, 16, lambda _m: None)
+    mine = [i for i, n in enumerate(st.names_theta) if n.startswith("joint2_map.")]
+    assert len(mine) == term("joint2_map").size
+    np.testing.assert_array_equal(np.asarray(st.bundle.prior.index), mine)
+    rng = np.random.default_rng(4)
+    theta = np.zeros(len(st.names_theta))
+    theta[: st.q] = rng.normal(0, 1e-4, st.q)
+    theta = jnp.asarray(theta)
+    h, b, c = normal_at(cal.bundle_normal, theta, st.bundle)
+    r = eqx.filter_jit(cal.residuals)(theta, st.bundle)
+    j = -eqx.filter_jit(jax.jacfwd(cal.residuals))(theta, st.bundle)
+    lam = st.bundle.prior.dense(theta.size)
+    t = np.asarray(theta)
+    np.testing.assert_allclose(c, r @ r + t @ lam @ t, rtol=1e-10)
+    want_h = np.asarray(j.T @ j) + lam
+    scale = np.sqrt(np.diag(want_h))
+    scale = np.where(scale > 1e-9 * np.median(scale), scale, 1.0)
+    np.testing.assert_allclose(
+        np.asarray(h) / np.outer(scale, scale), want_h / np.outer(scale, scale), atol=1e-9
+    )
+    np.testing.assert_allclose(
+        np.asarray(b) / scale,
+        (np.asarray(j.T @ r) - lam @ t) / scale,
+        atol=1e-9 * np.sqrt(float(c)),
+    )
+
+
+def _ridge_normal(theta, data):
+    a, y, sw, prior = data
+    h, b, c = _linear_normal(theta, (a, y, sw))
+    return prior.add_to(h, b, c, theta[prior.index])
+
+
+def test_a_gaussian_prior_gives_the_closed_form_map_estimate_and_posterior(linear):
+    """Linear least squares with a zero-mean Gaussian prior on two entries: the engine's
+    optimum is the MAP (ridge) solution ``(AᵀWA + Λ)⁻¹AᵀWy`` and its covariance
+    ``(AᵀWA + Λ)⁻¹``; a column the data cannot tell apart from another is determined
+    by the prior (identifiability keeps it)."""
+    from robtraj.estimate import GaussianPrior
+
+    a, y, sw = (np.asarray(x) for x in linear)
+    a = np.concatenate([a, a[:, 1:2]], 1)  # entry 4 duplicates entry 1: a null direction
+    lam = np.array([[4e4, 1e4], [1e4, 9e4]])
+    prior = GaussianPrior(jnp.asarray([1, 4]), jnp.asarray(lam))
+    data = (jnp.asarray(a), jnp.asarray(y), jnp.asarray(sw), prior)
+    free = np.ones(5, bool)
+    sol = solve(_ridge_normal, data, np.zeros(5), free, n_residuals=40)
+    full = prior.dense(5)
+    aw = sw[:, None] * a
+    post = aw.T @ aw + full
+    ref = np.linalg.solve(post, aw.T @ (sw * y))
+    assert sol.converged, sol.reason
+    np.testing.assert_allclose(sol.theta, ref, rtol=1e-8)
+    np.testing.assert_allclose(
+        sol.cost, np.sum((sw * (y - a @ ref)) ** 2) + ref @ full @ ref, rtol=1e-9
+    )
+    h = np.asarray(normal_at(_ridge_normal, jnp.asarray(sol.theta), data)[0])
+    names = ["a", "b", "c", "d", "e"]
+    kept, rep = identifiability(h, names, free, np.ones(5, bool))
+    assert kept.all() and not rep["dropped"] and not rep["undetermined"]
+    cov, rank = covariance(h, free)
+    assert rank == 5
+    np.testing.assert_allclose(cov, np.linalg.inv(post), rtol=1e-7)
+    # without the prior the duplicate is a null direction
+    h0 = aw.T @ aw
+    kept0, rep0 = identifiability(h0, names, free, np.ones(5, bool))
+    assert rep0["dropped"] and not kept0.all()

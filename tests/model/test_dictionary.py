@@ -14,6 +14,7 @@ from robtraj.model import (
     effective_joints,
     gravity_torque,
     hemispherical_tool,
+    joint_maps,
     led_positions,
     motion_sign,
     parse_effect,
@@ -110,4 +111,6 @@ def test_terms_round_trip_and_bad_values_are_user_errors():
         Effects.zeros(6).with_value("joint2_harmonic9", 1.0)
     # a robot's dictionary has its own joints' terms only
     assert "joint7_harmonic1" not in dictionary(6) and "joint7_harmonic1" in dictionary(7)
-    assert len(default_terms(6)) == len(dictionary(6))
+    # the joint angle error maps are terms, but not among the search's defaults
+    assert len(default_terms(6)) == len(dictionary(6)) + len(joint_maps(6))
+    assert not set(joint_maps(6)) & set(dictionary(6))

@@ -1,0 +1,182 @@
+"""Blocked cross-validation of pose-level models inside one series, by one Gauss–Newton
+step per left-out region.
+
+The poses of a series are split into `regions` of joint space (k-means). A model's
+cross-validation error is the error of each region's poses predicted by the model fitted
+to the other regions. The fit without region g is taken as one Gauss–Newton step from
+the model's linearisation at θ (the whole series' fit, or the current model of a
+search, with a candidate's entries added at zero)::
+
+    Δ_g = (H − H_g + Λ)⁻¹ (b − b_g − Λc)      (on the free entries)
+
+with ``H, b`` the weighted normal equations of the series, ``H_g, b_g`` those of region
+g, Λ the prior of the terms that carry one and c their values; the held-out residual is
+``r + J·Δ_g`` on region g's poses. The pose model is nearly linear in its corrections
+(tens of µrad and µm on a metre-sized arm), so the step is the refit to well below the
+errors compared (checked against refits in `tests/analysis/test_real_ur10.py`); it
+costs one pass over the poses for every candidate of a round and every left-out region,
+where refits would cost a fit each.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+
+from ._pose_normal import map_jvp
+
+
+@dataclasses.dataclass(frozen=True)
+class Linearisation:
+    """A series' normal equations at θ, in total and per region, and what the held-out
+    predictions need: `h`, `b` `(P, P)`, `(P,)` (weighted data, no prior), `h_g`, `b_g`
+    per region, `cost` ``rᵀWr``, the unweighted residual `r` `(N, 6)` (position [m],
+    rotation vector [rad]), the dense Jacobian `j` `(N, 6, n_dense)` of the entries
+    before the maps' knots, the maps' active knots, every pose's region `label` and where
+    the joint offsets lie in θ (`offset`, the maps' columns follow from theirs)."""
+
+    theta: np.ndarray
+    label: np.ndarray
+    h: np.ndarray
+    b: np.ndarray
+    cost: float
+    h_g: np.ndarray
+    b_g: np.ndarray
+    r: np.ndarray
+    j: np.ndarray
+    map_index: np.ndarray
+    map_weight: np.ndarray
+    offset: tuple[int, int]
+
+    @property
+    def n_dense(self) -> int:
+        return int(self.j.shape[-1])
+
+    @property
+    def n_regions(self) -> int:
+        return int(self.h_g.shape[0])
+
+
+def posterior(lin: Linearisation, prior: np.ndarray | None):
+    """``(H + Λ, b − Λθ)``: the normal equations with the prior `prior` `(P, P)` (dense
+    over θ, or None)."""
+    if prior is None:
+        return lin.h, lin.b
+    return lin.h + prior, lin.b - prior @ lin.theta
+
+
+def step(h: np.ndarray, b: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """``H⁻¹b`` on the `free` entries (zero elsewhere): Cholesky of the column-scaled
+    block, or its least-squares solution where that is not positive definite."""
+    idx = np.flatnonzero(free)
+    out = np.zeros(h.shape[-1])
+    if not idx.size:
+        return out
+    out[idx] = _solve(h[np.ix_(idx, idx)], b[idx])
+    return out
+
+
+def _solve(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
+    scaled = a / np.outer(d, d)
+    r = rhs / (d[:, None] if rhs.ndim == 2 else d)
+    try:
+        x = scipy.linalg.cho_solve(scipy.linalg.cho_factor(scaled, check_finite=False), r)
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(scaled, r, rcond=1e-10)[0]
+    return x / (d[:, None] if rhs.ndim == 2 else d)
+
+
+class RegionSystems:
+    """The systems ``(H + Λ − H_g) δ = b − Λθ − b_g`` of every left-out region g (and of
+    the whole series, last), with the free knots of the maps eliminated once: per
+    system, the Cholesky factor of the map block gives the Schur complement onto the
+    other entries, `(n_dense, n_dense)`, from which the step of any model that shares
+    those knots (and the prior) is a small solve. A round of the search scores every
+    candidate from one set of these."""
+
+    def __init__(self, lin: Linearisation, prior: np.ndarray | None, map_free: np.ndarray):
+        h, b = posterior(lin, prior)
+        n = self.n_dense = lin.n_dense
+        self.map_free = np.asarray(map_free[n:], bool)
+        m = np.flatnonzero(self.map_free) + n
+        d = np.arange(n)
+        self.m = m
+        self.schur, self.rhs, self.y, self.ym = [], [], [], []
+        for g in range(lin.n_regions + 1):
+            a = h if g == lin.n_regions else h - lin.h_g[g]
+            r = b if g == lin.n_regions else b - lin.b_g[g]
+            if m.size:
+                both = _solve(a[np.ix_(m, m)], np.concatenate([a[np.ix_(m, d)], r[m, None]], 1))
+                ymd, ym = both[:, :-1], both[:, -1]
+                self.schur.append(a[np.ix_(d, d)] - a[np.ix_(d, m)] @ ymd)
+                self.rhs.append(r[d] - a[np.ix_(d, m)] @ ym)
+                self.y.append(ymd)
+                self.ym.append(ym)
+            else:
+                self.schur.append(a[np.ix_(d, d)])
+                self.rhs.append(r[d])
+        self.p = lin.theta.size
+
+    def steps(self, free: np.ndarray) -> np.ndarray:
+        """`(G + 1, P)`: the step on the `free` entries of each system (its map knots must
+        be those the systems eliminated)."""
+        n = self.n_dense
+        if not np.array_equal(free[n:], self.map_free):
+            raise ValueError("the free map knots differ from those eliminated")
+        dense = np.flatnonzero(free[:n])
+        out = np.zeros((len(self.schur), self.p))
+        for g, (s, r) in enumerate(zip(self.schur, self.rhs)):
+            x = _solve(s[np.ix_(dense, dense)], r[dense]) if dense.size else np.zeros(0)
+            out[g, dense] = x
+            if self.m.size:
+                out[g, self.m] = self.ym[g] - self.y[g][:, dense] @ x
+        return out
+
+
+def region_steps(lin: Linearisation, free: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
+    """`(G, P)`: the Gauss–Newton step from `lin.theta` of the fit without each region
+    (module docstring), on the `free` entries."""
+    return RegionSystems(lin, prior, free).steps(free)[:-1]
+
+
+def held_out(lin: Linearisation, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position error [m] and rotation angle [rad] of every pose predicted with its region
+    left out (`steps` from `region_steps`): the norms of ``r + J·Δ_{region}``."""
+    label, n = lin.label, lin.n_dense
+    res = lin.r + np.einsum("nkp,np->nk", lin.j, steps[label, :n])
+    if steps.shape[1] > n:
+        res = res + np.asarray(
+            map_jvp(
+                jnp.asarray(lin.j),
+                lin.offset,
+                jnp.asarray(lin.map_index),
+                jnp.asarray(lin.map_weight),
+                jnp.asarray(steps[:, n:]),
+                jnp.asarray(label),
+            )
+        )
+    return np.linalg.norm(res[:, :3], axis=1), np.linalg.norm(res[:, 3:], axis=1)
+
+
+def cv_error(lin: Linearisation, steps: np.ndarray) -> dict[str, float]:
+    """The blocked cross-validation error of the model whose left-out steps are `steps`
+    (`region_steps`, `RegionSystems.steps`): RMS and mean of the held-out position error
+    [m] and rotation angle [rad]."""
+    pos, ang = held_out(lin, steps[: lin.n_regions])
+    return {
+        "pos_rms_m": float(np.sqrt(np.mean(pos**2))),
+        "ang_rms_rad": float(np.sqrt(np.mean(ang**2))),
+        "pos_mean_m": float(np.mean(pos)),
+        "ang_mean_rad": float(np.mean(ang)),
+    }
+
+
+def gain(before: dict[str, float], after: dict[str, float]) -> float:
+    """Relative decrease of the cross-validation error: the mean of those of the position
+    RMS and the angle RMS (negative: worse)."""
+    g = [(before[k] - after[k]) / before[k] for k in ("pos_rms_m", "ang_rms_rad")]
+    return float(0.5 * (g[0] + g[1]))
