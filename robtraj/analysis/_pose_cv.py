@@ -75,11 +75,13 @@ def step(h: np.ndarray, b: np.ndarray, free: np.ndarray) -> np.ndarray:
     out = np.zeros(h.shape[-1])
     if not idx.size:
         return out
-    out[idx] = _solve(h[np.ix_(idx, idx)], b[idx])
+    out[idx] = solve_scaled(h[np.ix_(idx, idx)], b[idx])
     return out
 
 
-def _solve(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+def solve_scaled(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``a⁻¹ rhs`` for a symmetric `a`: Cholesky of the column-scaled matrix, or its
+    least-squares solution where that is not positive definite."""
     d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
     scaled = a / np.outer(d, d)
     r = rhs / (d[:, None] if rhs.ndim == 2 else d)
@@ -110,7 +112,9 @@ class RegionSystems:
             a = h if g == lin.n_regions else h - lin.h_g[g]
             r = b if g == lin.n_regions else b - lin.b_g[g]
             if m.size:
-                both = _solve(a[np.ix_(m, m)], np.concatenate([a[np.ix_(m, d)], r[m, None]], 1))
+                both = solve_scaled(
+                    a[np.ix_(m, m)], np.concatenate([a[np.ix_(m, d)], r[m, None]], 1)
+                )
                 ymd, ym = both[:, :-1], both[:, -1]
                 self.schur.append(a[np.ix_(d, d)] - a[np.ix_(d, m)] @ ymd)
                 self.rhs.append(r[d] - a[np.ix_(d, m)] @ ym)
@@ -130,7 +134,7 @@ class RegionSystems:
         dense = np.flatnonzero(free[:n])
         out = np.zeros((len(self.schur), self.p))
         for g, (s, r) in enumerate(zip(self.schur, self.rhs)):
-            x = _solve(s[np.ix_(dense, dense)], r[dense]) if dense.size else np.zeros(0)
+            x = solve_scaled(s[np.ix_(dense, dense)], r[dense]) if dense.size else np.zeros(0)
             out[g, dense] = x
             if self.m.size:
                 out[g, self.m] = self.ym[g] - self.y[g][:, dense] @ x

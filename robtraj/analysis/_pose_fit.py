@@ -16,7 +16,6 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-import scipy.linalg
 from jaxtyping import Array
 from scipy.cluster.vq import kmeans2
 
@@ -49,7 +48,7 @@ from ..model import (
     redundant_link_parameters,
     ur10,
 )
-from ._pose_cv import Linearisation, RegionSystems
+from ._pose_cv import Linearisation, RegionSystems, solve_scaled
 from ._pose_normal import map_index, normal_terms
 from ._pose_series import PoseSeries
 from ._quat import rotation_angle
@@ -856,10 +855,8 @@ def marginal(h: np.ndarray, map_free: np.ndarray) -> np.ndarray:
     rest = np.arange(N_PARAMS)
     if not knots.size:
         return h[np.ix_(rest, rest)]
-    d = np.sqrt(np.diag(h)[knots])
-    factor = scipy.linalg.cho_factor(h[np.ix_(knots, knots)] / np.outer(d, d))
-    cross = h[np.ix_(rest, knots)] / d
-    return h[np.ix_(rest, rest)] - cross @ scipy.linalg.cho_solve(factor, cross.T)
+    cross = h[np.ix_(knots, rest)]
+    return h[np.ix_(rest, rest)] - cross.T @ solve_scaled(h[np.ix_(knots, knots)], cross)
 
 
 def identifiable(
