@@ -21,6 +21,7 @@ where refits would cost a fit each.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax.numpy as jnp
 import numpy as np
@@ -58,6 +59,11 @@ class Linearisation:
     @property
     def n_regions(self) -> int:
         return int(self.h_g.shape[0])
+
+    @functools.cached_property
+    def on_device(self) -> tuple:
+        """`j`, `map_index`, `map_weight` and `label` as JAX arrays (copied once)."""
+        return tuple(jnp.asarray(a) for a in (self.j, self.map_index, self.map_weight, self.label))
 
 
 def posterior(lin: Linearisation, prior: np.ndarray | None):
@@ -101,29 +107,35 @@ class RegionSystems:
     candidate from one set of these."""
 
     def __init__(self, lin: Linearisation, prior: np.ndarray | None, map_free: np.ndarray):
-        h, b = posterior(lin, prior)
         n = self.n_dense = lin.n_dense
         self.map_free = np.asarray(map_free[n:], bool)
-        m = np.flatnonzero(self.map_free) + n
-        d = np.arange(n)
-        self.m = m
-        self.schur, self.rhs, self.y, self.ym = [], [], [], []
-        for g in range(lin.n_regions + 1):
-            a = h if g == lin.n_regions else h - lin.h_g[g]
-            r = b if g == lin.n_regions else b - lin.b_g[g]
-            if m.size:
-                both = solve_scaled(
-                    a[np.ix_(m, m)], np.concatenate([a[np.ix_(m, d)], r[m, None]], 1)
-                )
-                ymd, ym = both[:, :-1], both[:, -1]
-                self.schur.append(a[np.ix_(d, d)] - a[np.ix_(d, m)] @ ymd)
-                self.rhs.append(r[d] - a[np.ix_(d, m)] @ ym)
-                self.y.append(ymd)
-                self.ym.append(ym)
-            else:
-                self.schur.append(a[np.ix_(d, d)])
-                self.rhs.append(r[d])
+        m = self.m = np.flatnonzero(self.map_free) + n
         self.p = lin.theta.size
+        d = np.arange(n)
+        b = lin.b if prior is None else lin.b - prior @ lin.theta
+        lam = (lambda r, c: 0.0) if prior is None else (lambda r, c: _block(prior, r, c))
+        h_dd = lin.h[:n, :n] + lam(d, d)
+        # the whole series last: its region terms are zero
+        hg_dd = np.concatenate([lin.h_g[:, :n, :n], np.zeros((1, n, n))])
+        bg = np.concatenate([lin.b_g, np.zeros((1, self.p))])
+        self.schur = list(h_dd - hg_dd)
+        self.rhs = list(b[:n] - bg[:, :n])
+        self.y, self.ym = [], []
+        if not m.size:
+            return
+        h_mm = _block(lin.h, m, m) + lam(m, m)
+        h_md = _block(lin.h, m, d) + lam(m, d)
+        for g in range(lin.n_regions + 1):
+            last = g == lin.n_regions
+            a_mm = h_mm if last else h_mm - _block(lin.h_g[g], m, m)
+            a_md = h_md if last else h_md - _block(lin.h_g[g], m, d)
+            r_m = b[m] - bg[g, m]
+            both = solve_scaled(a_mm, np.concatenate([a_md, r_m[:, None]], 1))
+            ymd, ym = both[:, :-1], both[:, -1]
+            self.schur[g] = self.schur[g] - a_md.T @ ymd
+            self.rhs[g] = self.rhs[g] - a_md.T @ ym
+            self.y.append(ymd)
+            self.ym.append(ym)
 
     def steps(self, free: np.ndarray) -> np.ndarray:
         """`(G + 1, P)`: the step on the `free` entries of each system (its map knots must
@@ -141,6 +153,11 @@ class RegionSystems:
         return out
 
 
+def _block(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``a[rows][:, cols]`` (a copy)."""
+    return a[np.ix_(rows, cols)]
+
+
 def region_steps(lin: Linearisation, free: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
     """`(G, P)`: the Gauss–Newton step from `lin.theta` of the fit without each region
     (module docstring), on the `free` entries."""
@@ -153,15 +170,9 @@ def held_out(lin: Linearisation, steps: np.ndarray) -> tuple[np.ndarray, np.ndar
     label, n = lin.label, lin.n_dense
     res = lin.r + np.einsum("nkp,np->nk", lin.j, steps[label, :n])
     if steps.shape[1] > n:
+        j, index, weight, group = lin.on_device
         res = res + np.asarray(
-            map_jvp(
-                jnp.asarray(lin.j),
-                lin.offset,
-                jnp.asarray(lin.map_index),
-                jnp.asarray(lin.map_weight),
-                jnp.asarray(steps[:, n:]),
-                jnp.asarray(label),
-            )
+            map_jvp(j, lin.offset, index, weight, jnp.asarray(steps[:, n:]), group)
         )
     return np.linalg.norm(res[:, :3], axis=1), np.linalg.norm(res[:, 3:], axis=1)
 

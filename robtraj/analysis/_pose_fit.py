@@ -19,6 +19,7 @@ import numpy as np
 from jaxtyping import Array
 from scipy.cluster.vq import kmeans2
 
+from .._blas import serial_blas
 from .._errors import UserError
 from ..estimate import (
     GaussianPrior,
@@ -49,7 +50,7 @@ from ..model import (
     ur10,
 )
 from ._pose_cv import Linearisation, RegionSystems, solve_scaled
-from ._pose_normal import map_index, normal_terms
+from ._pose_normal import group_members, map_index, normal_terms
 from ._pose_series import PoseSeries
 from ._quat import rotation_angle
 
@@ -286,13 +287,10 @@ def _jacobian(theta, z0, x0, joints, drift, torque, measured):
     r = residual(tg, xi0)
     j_global = jax.jacfwd(residual)(tg, xi0)  # (N, 6, 16)
     # each pose's residual depends on its own twist only: 6 tangents, all poses at once
-    j_xi = jnp.stack(
-        [
-            jax.jvp(lambda e: residual(tg, e), (xi0,), (jnp.zeros_like(xi0).at[:, k].set(1.0),))[1]
-            for k in range(6)
-        ],
-        -1,
-    )  # (N, 6, 6)
+    j_xi = jax.vmap(
+        lambda dx: jax.jvp(lambda e: residual(tg, e), (xi0,), (jnp.broadcast_to(dx, (n, 6)),))[1],
+        out_axes=-1,
+    )(jnp.eye(6, dtype=theta.dtype))  # (N, 6, 6)
     j = jnp.zeros((n, 6, N_PARAMS), r.dtype)
     j = j.at[..., _GLOBAL].set(j_global)
     j = j.at[..., _KINEMATIC].set(jnp.einsum("nrk,nkp->nrp", j_xi, kin))
@@ -430,7 +428,7 @@ class PoseFit:
         """The estimated joint angle error maps, {joint (1-based): {"knots": angles [rad],
         "value": [rad], "sigma": posterior 1σ [rad], "estimated": bool per knot (False:
         held at zero, far from the data)}}, over the whole revolution."""
-        if not self.has_maps:
+        if not self.has_maps or not np.any(self.free[N_PARAMS:]):
             return {}
         out = {}
         block = self.theta[_SL["joint_map"]].reshape(6, MAP_KNOTS)
@@ -639,36 +637,34 @@ def pose_normal(theta, d: PoseData):
         b = jnp.zeros(p, r.dtype).at[:12].set(-(j.T @ r))
         c = r @ r
     else:
-        h, b, c = (x[0] for x in _group_normal(theta, d, jnp.zeros(d.joints.shape[0], int), 1))
+        everyone = jnp.arange(d.joints.shape[0], dtype=jnp.int32)[None]
+        h, b, c = (x[0] for x in _group_normal(theta, d, everyone))
     return d.prior.add_to(h, b, c, theta[d.prior.index])
 
 
-def _group_normal(theta, d: PoseData, group, n_groups: int):
-    """``(H, b, cost)`` of the weighted pose residuals per group of poses (no prior)."""
+def _group_normal(theta, d: PoseData, members):
+    """``(H, b, cost)`` of the weighted pose residuals per group of poses (`members`, as
+    `_pose_normal.group_members` gives; no prior)."""
     r, j = _jacobian(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
     n_map = theta.shape[0] - N_PARAMS
-    return normal_terms(r, j, d.sqrt_w, _OFFSET, d.map_index, d.map_weight, n_map, group, n_groups)
+    return normal_terms(r, j, d.sqrt_w, _OFFSET, d.map_index, d.map_weight, n_map, members)
 
 
-@functools.partial(jax.jit, static_argnames="n_groups")
-def group_terms(theta, d: PoseData, group, n_groups: int):
-    """Per group of poses (`group` `(N,)` in ``[0, n_groups)``): ``JᵀWJ`` `(G, P, P)`,
+@jax.jit
+def group_terms(theta, d: PoseData, members):
+    """Per group of poses (`members` `(G, M)`, `_pose_normal.group_members`): ``JᵀWJ`` `(G, P, P)`,
     ``−JᵀWr`` `(G, P)`, ``rᵀWr`` `(G,)`; and the unweighted residual `(N, 6)` and dense
     Jacobian `(N, 6, N_PARAMS)` (the maps' columns follow from it: `_pose_normal`)."""
     r, j = _jacobian(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
     n_map = theta.shape[0] - N_PARAMS
-    h, b, c = normal_terms(
-        r, j, d.sqrt_w, _OFFSET, d.map_index, d.map_weight, n_map, group, n_groups
-    )
+    h, b, c = normal_terms(r, j, d.sqrt_w, _OFFSET, d.map_index, d.map_weight, n_map, members)
     return h, b, c, r, j
 
 
 def linearise(theta: np.ndarray, data: PoseData, label: np.ndarray) -> Linearisation:
     """The linearisation of the pose model of `data` at `theta`, per region `label`."""
-    g = int(label.max()) + 1
-    h_g, b_g, c_g, r, j = (
-        np.asarray(a) for a in group_terms(jnp.asarray(theta), data, jnp.asarray(label), g)
-    )
+    members = jnp.asarray(group_members(label))
+    h_g, b_g, c_g, r, j = (np.asarray(a) for a in group_terms(jnp.asarray(theta), data, members))
     return Linearisation(
         theta=np.asarray(theta, float),
         label=np.asarray(label),
@@ -683,6 +679,24 @@ def linearise(theta: np.ndarray, data: PoseData, label: np.ndarray) -> Linearisa
         map_weight=np.asarray(data.map_weight),
         offset=_OFFSET,
     )
+
+
+def zero_map_prior() -> GaussianPrior:
+    """No prior, in the layout of the prior of every map (zero precision): normal
+    equations without a prior share the compilation of those of a fit of the maps."""
+    pr = map_prior_of(MAP_TERMS)
+    return GaussianPrior(pr.index, jnp.zeros_like(pr.precision))
+
+
+def structure_normal(theta, z0, x0, series: PoseSeries, w: np.ndarray) -> np.ndarray:
+    """The data's normal matrix `(P, P)` at the effects' zero with `theta`'s rigid
+    transforms (no prior), for identifiability: there a null direction of the model's
+    structure is exact (parallel axes, say), where at an estimate the estimated effects
+    (a twist of a parallel axis) break it by rounding-size amounts."""
+    p = theta.shape[0]
+    at = jnp.asarray(np.where(np.arange(p) < 12, theta, 0.0))
+    prior = zero_map_prior() if p > N_PARAMS else None
+    return np.asarray(normal_at(pose_normal, at, _data(z0, x0, series, w, False, prior))[0])
 
 
 def _data(
@@ -710,6 +724,8 @@ PRIOR_DAMPING = 1e-4
 
 def _solve(theta, free, z0, x0, series, w, prior=None, max_iter=50):
     """The engine on the weighted residuals (and the prior) over the `free` parameters."""
+    if (prior is None or not prior.size) and theta.shape[0] > N_PARAMS:
+        prior = zero_map_prior()
     data = _data(z0, x0, series, w, bool(np.all(np.flatnonzero(free) < 12)), prior)
     sol = solve(
         pose_normal,
@@ -723,6 +739,7 @@ def _solve(theta, free, z0, x0, series, w, prior=None, max_iter=50):
     return sol, data
 
 
+@serial_blas
 def fit_poses(
     series: PoseSeries,
     *,
@@ -733,6 +750,8 @@ def fit_poses(
     block_sigma: tuple[float, float] | None = None,
     map_prior: tuple[float, float] | None = None,
     max_iter: int = 50,
+    structure: np.ndarray | None = None,
+    maps_layout: bool = False,
 ) -> PoseFit:
     """Calibrate `series` at pose level (see the module docstring).
 
@@ -749,8 +768,17 @@ def fit_poses(
     - `map_prior`: (σ_f, ℓ) [rad] of the maps' prior (`robtraj.model.map_precision`);
       default the terms' own (`Term.precision`). A map's knots far from the series'
       angles are held at zero, their prior mean (`map_knots_supported`).
+    - `structure`: the data's normal matrix at the effects' zero with the rigid
+      transforms of `init` (no prior; `structure_normal`), where the caller has it.
+    - `maps_layout`: θ in the layout with the maps' block even where no map is
+      estimated (held at zero), so that the fit shares the compiled normal equations of
+      the fits that estimate maps (a workflow whose candidates include them).
     """
-    maps = uses_maps(estimate) or any(f is not None and f.has_maps for f in (init, fixed))
+    maps = (
+        maps_layout
+        or uses_maps(estimate)
+        or any(f is not None and f.has_maps for f in (init, fixed))
+    )
     p = n_params(maps)
     if init is not None:
         theta, z0, x0 = _resized(init.theta, p), init.z0, init.x0
@@ -779,16 +807,10 @@ def fit_poses(
         block_sigma = _block_sigma(np.asarray(_pose_residual_jit(jnp.asarray(theta), d0)), series)
     w = _weights(series, block_sigma)
     if np.any(free[12:]):
-        # identifiability of the model's structure: at the effects' zero, where a null
-        # direction is exact (parallel axes, say), not at `init`'s estimate, where the
-        # estimated effects (a twist of a parallel axis) break it by rounding-size amounts
-        structure = np.where(np.arange(p) < 12, theta, 0.0)
-        h0 = np.asarray(
-            normal_at(pose_normal, jnp.asarray(structure), _data(z0, x0, series, w, False, prior))[
-                0
-            ]
-        )
-        free, ident = identifiable(h0, free)
+        # identifiability of the model's structure (`structure_normal`)
+        if structure is None:
+            structure = structure_normal(theta, z0, x0, series, w)
+        free, ident = identifiable(structure + prior.dense(p), free)
         theta = np.where(free | (np.arange(p) < 12), theta, 0.0)
     else:
         ident = {"dropped": [], "condition_number": float("nan")}
@@ -796,7 +818,7 @@ def fit_poses(
         theta[12:] = _resized(fixed.theta, p)[12:]
     sol, data = _solve(theta, free, z0, x0, series, w, prior, max_iter)
     theta = sol.theta
-    h = np.asarray(normal_at(pose_normal, jnp.asarray(theta), data)[0])
+    h = np.asarray((sol.normal or normal_at(pose_normal, jnp.asarray(theta), data))[0])
     n_res = 6 * series.n
     lam = data.prior.dense(p)
     prior_cost = float(theta @ lam @ theta)
@@ -896,6 +918,7 @@ def regions(series: PoseSeries, n: int = REGIONS) -> np.ndarray:
     return label
 
 
+@serial_blas
 def _region_jackknife(theta, data: PoseData, free, series: PoseSeries, h) -> np.ndarray:
     """The delete-one-region jackknife (`robtraj.estimate.jackknife_covariance`, the
     formula of `robust_covariance`) with the poses grouped into `regions` of joint

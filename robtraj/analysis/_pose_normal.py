@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..model import map_active
@@ -50,8 +51,7 @@ def normal_terms(
     index: Int[Array, "n joints 2"],
     weight: Float[Array, "n joints 2"],
     n_map: int,
-    group: Int[Array, " n"],
-    n_groups: int,
+    members: Int[Array, "g m"],
 ):
     """``(H, b, cost)`` per group of poses, `(G, P, P)`, `(G, P)`, `(G,)` with
     ``P = P_d + n_map``: ``H = JᵀWJ``, ``b = −JᵀWr`` (r = predicted − measured, J its
@@ -62,14 +62,28 @@ def normal_terms(
       joints' turn columns ``∂r/∂qⱼ``.
     - `index`, `weight`: the maps' active knots (`map_index`); `n_map`: the size of the
       map block (0: no maps).
-    - `group` `(N,)`: each pose's group in ``[0, n_groups)``.
+    - `members` `(G, M)`: the poses of each group, padded with N (`group_members`); a
+      group's dense block is then one product over its own poses, not a masked product
+      over all of them per group.
     """
+    n = r.shape[0]
+    n_groups = members.shape[0]
     rw = sqrt_w * r
     jw = sqrt_w[..., None] * j
-    onehot = (group[:, None] == jnp.arange(n_groups)[None, :]).astype(r.dtype)
-    h_dd = jnp.einsum("ng,nkp,nkq->gpq", onehot, jw, jw)
-    b_d = -jnp.einsum("ng,nkp,nk->gp", onehot, jw, rw)
-    cost = jnp.einsum("ng,nk->g", onehot, rw * rw)
+    pad = n * jnp.ones_like(members)
+    group = (
+        jnp.zeros(n, members.dtype)
+        .at[jnp.where(members < n, members, pad)]
+        .set(
+            jnp.broadcast_to(jnp.arange(n_groups, dtype=members.dtype)[:, None], members.shape),
+            mode="drop",
+        )
+    )
+    jg = jnp.concatenate([jw, jnp.zeros_like(jw[:1])])[members]  # (G, M, 6, P_d)
+    rg = jnp.concatenate([rw, jnp.zeros_like(rw[:1])])[members]  # (G, M, 6)
+    h_dd = jnp.einsum("gmkp,gmkq->gpq", jg, jg)
+    b_d = -jnp.einsum("gmkp,gmk->gp", jg, rg)
+    cost = jnp.einsum("gmk,gmk->g", rg, rg)
     if n_map == 0:
         return h_dd, b_d, cost
     pd = j.shape[-1]
@@ -104,3 +118,15 @@ def normal_terms(
         1,
     )
     return h, jnp.concatenate([b_d, b_m], 1), cost
+
+
+def group_members(label: np.ndarray) -> np.ndarray:
+    """`(G, M)`: the indices of the poses of each group ``0 … G−1`` of `label` `(N,)`,
+    padded with N to the largest group's size M."""
+    label = np.asarray(label)
+    n_groups = int(label.max()) + 1 if label.size else 1
+    rows = [np.flatnonzero(label == g) for g in range(n_groups)]
+    out = np.full((n_groups, max(len(x) for x in rows)), label.size, np.int32)
+    for g, x in enumerate(rows):
+        out[g, : len(x)] = x
+    return out

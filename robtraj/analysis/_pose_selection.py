@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from ..estimate import normal_at
+from .._blas import serial_blas
 from ._pose_cv import Linearisation, RegionSystems, cv_error, gain, posterior
 from ._pose_fit import (
     HARMONIC_TERMS,
@@ -40,8 +41,8 @@ from ._pose_fit import (
     marginal,
     n_params,
     parse_effect_spec,
-    pose_normal,
     regions,
+    structure_normal,
     uses_maps,
 )
 from ._pose_series import PoseSeries
@@ -119,23 +120,39 @@ class _Round:
         self.maps = lin.theta.size > N_PARAMS
         self._cache = {}
 
+    def _systems(self, effects, map_prior):
+        p = self.lin.theta.size
+        free0 = _free_mask(effects, self.rigid, self.series, self.maps)
+        pr = map_prior_of(effects, map_prior)
+        lam = pr.dense(p) if pr.size else None
+        h = self.h_struct if lam is None else self.h_struct + lam
+        schur = marginal(h, free0) if self.maps else None
+        return lam, schur, RegionSystems(self.lin, lam, free0)
+
+    def prepare(self, effects, map_priors) -> None:
+        """The systems of `effects` under each of `map_priors` not built yet, built on up
+        to one thread per core (their factorisations run outside Python's lock)."""
+        todo = [mp for mp in map_priors if (mp, map_terms_of(effects)) not in self._cache]
+        workers = min(len(todo), os.cpu_count() or 1)
+        if workers < 2:
+            return
+        with ThreadPoolExecutor(workers) as pool:
+            built = pool.map(lambda mp: self._systems(effects, mp), todo)
+            self._cache.update(((mp, map_terms_of(effects)), b) for mp, b in zip(todo, built))
+
     def score(self, effects, map_prior) -> dict[str, Any]:
         """``{"cv", "free", "steps", "prior"}`` of the model `effects` under `map_prior`."""
-        p = self.lin.theta.size
         free0 = _free_mask(effects, self.rigid, self.series, self.maps)
         key = (map_prior, map_terms_of(effects))
         if key not in self._cache:
-            pr = map_prior_of(effects, map_prior)
-            lam = pr.dense(p) if pr.size else None
-            h = self.h_struct if lam is None else self.h_struct + lam
-            schur = marginal(h, free0) if self.maps else None
-            self._cache[key] = (lam, schur, RegionSystems(self.lin, lam, free0))
+            self._cache[key] = self._systems(effects, map_prior)
         lam, schur, systems = self._cache[key]
         free, _ = identifiable(self.h_struct, free0, schur)
         steps = systems.steps(free)
         return {"cv": cv_error(self.lin, steps), "free": free, "steps": steps, "prior": lam}
 
 
+@serial_blas
 def select(
     series: PoseSeries,
     nominal: PoseFit,
@@ -166,9 +183,8 @@ def select(
         """The normal matrix at the effects' zero (the nominal fit's rigid transforms),
         for identifiability: the model's structure, computed once per layout."""
         if p not in structural:
-            at = jnp.asarray(_resized(nominal.theta[:12], p))
-            data = _data(nominal.z0, nominal.x0, series, w, False)
-            structural[p] = np.asarray(normal_at(pose_normal, at, data)[0])
+            at = _resized(nominal.theta[:12], p)
+            structural[p] = structure_normal(at, nominal.z0, nominal.x0, series, w)
         return structural[p]
 
     for rnd in range(1, max_steps + 1):
@@ -236,15 +252,15 @@ def select(
         named.append(best_c)
         say(f"{series.name}: named {best_c} (cross-validation gain {100 * entry['cv_gain']:.1f} %)")
         # refitted from the Gauss–Newton step the scoring took (one or two steps more)
+        p_named = n_params(uses_maps(named))
         current = fit_poses(
             series,
             estimate=tuple(named),
-            init=dataclasses.replace(
-                current, theta=_resized(theta_step, n_params(uses_maps(named)))
-            ),
+            init=dataclasses.replace(current, theta=_resized(theta_step, p_named)),
             block_sigma=bsig,
             map_prior=map_prior,
             rigid=rigid,
+            structure=h_struct(p_named),
         )
         fits.append(current)
         steps.append(dict(entry))
@@ -253,8 +269,11 @@ def select(
         # have taken part of what they carried
         say(f"{series.name}: the maps' prior of the final model")
         theta = current.theta
-        lin = linearise(theta, _data(current.z0, current.x0, series, w, False), label)
-        rnd_ = _Round(lin, h_struct(theta.size), series, rigid)
+        if rnd_.lin.theta.size != theta.size or not np.array_equal(rnd_.lin.theta, theta):
+            # (the last round linearised at `current` where it named nothing)
+            lin = linearise(theta, _data(current.z0, current.x0, series, w, False), label)
+            rnd_ = _Round(lin, h_struct(theta.size), series, rigid)
+        rnd_.prepare(named, prior_grid)
         table = [(mp, rnd_.score(named, mp)["cv"]) for mp in prior_grid]
         best = min(table, key=lambda x: _cost(x[1]))[0]
         steps[-1]["final_map_prior"] = {
@@ -271,6 +290,7 @@ def select(
                 block_sigma=bsig,
                 map_prior=map_prior,
                 rigid=rigid,
+                structure=h_struct(theta.size),
             )
             fits[-1] = current
     return Selection(series.name, fits, steps, tried, rejected)

@@ -49,11 +49,15 @@ never takes part in the naming.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+import functools
+import os
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
+from .._blas import serial_blas
 from ..model import MAP_PRIOR_GRID, map_words
 from ._pose_fit import (
     HARMONIC_TERMS,
@@ -65,6 +69,7 @@ from ._pose_fit import (
     parse_effect_spec,
     pose_errors,
     tracker_noise,
+    uses_maps,
 )
 from ._pose_selection import MIN_CV_GAIN, Selection, select
 from ._pose_series import PoseSeries, load_series, series_from_recording
@@ -128,34 +133,57 @@ class CrossSeries:
         return out
 
 
+@serial_blas
 def evaluate(
     effects: Sequence[str],
     series: dict[str, PoseSeries],
     rigid: Sequence[str] = ("camera", "probe"),
     block_sigma: dict[str, tuple[float, float]] | None = None,
     map_prior: dict[str, tuple[float, float]] | None = None,
+    maps_layout: bool = False,
 ) -> CrossSeries:
-    """Fit `effects` on every series and predict each other series from it."""
-    fitted = {
-        k: fit_poses(
-            s,
+    """Fit `effects` on every series and predict each other series from it
+    (`maps_layout`: as `fit_poses`)."""
+    fitted = _each(
+        lambda k: fit_poses(
+            series[k],
             estimate=effects,
             block_sigma=None if block_sigma is None else block_sigma[k],
             map_prior=None if map_prior is None else map_prior.get(k),
+            maps_layout=maps_layout,
+        ),
+        series,
+    )
+    pairs = [f"{a}->{b}" for a in series for b in series if a != b]
+
+    def predict(pair: str) -> PoseFit:
+        a, b = pair.split("->")
+        return fit_poses(
+            series[b],
+            fixed=fitted[a],
+            rigid=rigid,
+            block_sigma=None if block_sigma is None else block_sigma[b],
         )
-        for k, s in series.items()
-    }
-    cross = {}
-    for a in series:
-        for b in series:
-            if a != b:
-                cross[f"{a}->{b}"] = fit_poses(
-                    series[b],
-                    fixed=fitted[a],
-                    rigid=rigid,
-                    block_sigma=None if block_sigma is None else block_sigma[b],
-                )
-    return CrossSeries(tuple(effects), fitted, cross)
+
+    return CrossSeries(tuple(effects), fitted, _each(predict, pairs))
+
+
+def _each(fn: Callable[[str], Any], keys: Iterable[str]) -> dict[str, Any]:
+    """``{k: fn(k)}`` over `keys` (series names), computed concurrently
+    (`_concurrently`)."""
+    return _concurrently({k: functools.partial(fn, k) for k in keys})
+
+
+def _concurrently(tasks: dict[str, Callable[[], Any]]) -> dict[str, Any]:
+    """``{k: task()}``, the tasks run in their order on up to one thread per core: the
+    series are independent, and a fit's Python, NumPy and XLA compilation keep one core
+    busy at a time for long stretches."""
+    workers = max(1, min(len(tasks), os.cpu_count() or 1))
+    if workers == 1:
+        return {k: t() for k, t in tasks.items()}
+    with ThreadPoolExecutor(workers) as pool:
+        futures = {k: pool.submit(t) for k, t in tasks.items()}
+        return {k: f.result() for k, f in futures.items()}
 
 
 def _rms(fit: PoseFit) -> tuple[float, float]:
@@ -369,6 +397,7 @@ def _jsonable(x):
     return x
 
 
+@serial_blas
 def run_workflow(
     series: dict[str, PoseSeries],
     *,
@@ -400,11 +429,15 @@ def run_workflow(
     if nz:  # same tracker: a series without reported std gets the others' noise level
         noise = {k: (v if v > 0 else float(np.mean(nz))) for k, v in noise.items()}
     say("nominal rigid fits")
-    nominal = {k: fit_poses(s, rigid=rigid) for k, s in series.items()}
+    # every fit in one layout: one compilation of each normal-equation kernel per series
+    layout = uses_maps(candidates)
+    nominal = _each(lambda k: fit_poses(series[k], rigid=rigid, maps_layout=layout), series)
     bsig = {k: v.block_sigma for k, v in nominal.items()}
-    selections = {
-        k: select(
-            s,
+
+    def name_on(k: str) -> tuple[Selection, list[dict[str, PoseFit]]]:
+        """The effects named on series k, and what each step predicts of the others."""
+        sel = select(
+            series[k],
             nominal[k],
             candidates,
             rigid=rigid,
@@ -413,11 +446,8 @@ def run_workflow(
             prior_grid=prior_grid,
             progress=say,
         )
-        for k, s in series.items()
-    }
-    say("cross-series validation")
-    cross = {
-        k: [
+        say(f"{k}: cross-series validation")
+        cross = [
             {
                 t: nominal[t]
                 if k_step == 0
@@ -427,10 +457,17 @@ def run_workflow(
             }
             for k_step, f in enumerate(sel.fits)
         ]
-        for k, sel in selections.items()
-    }
-    say("kinematic calibration")
-    calib = evaluate(CALIBRATION, series, rigid, bsig)
+        return sel, cross
+
+    def calibrate() -> CrossSeries:
+        say("kinematic calibration")
+        return evaluate(CALIBRATION, series, rigid, bsig, maps_layout=layout)
+
+    # the kinematic calibration takes the first thread a series leaves
+    done = _concurrently({**{k: functools.partial(name_on, k) for k in series}, "": calibrate})
+    calib = done.pop("")
+    selections = {k: v[0] for k, v in done.items()}
+    cross = {k: v[1] for k, v in done.items()}
     return Workflow(
         series=tuple(series),
         rigid=tuple(rigid),

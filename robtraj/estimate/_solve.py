@@ -94,6 +94,52 @@ def padded_size(n_free: int) -> int:
     return max(step, -(-n_free // step) * step)
 
 
+#: power and inverse iterations that estimate the scaled normal matrix's extreme
+#: eigenvalues (`_square_root`)
+_ITERATIONS = 12
+
+
+def _square_root(hs, bs):
+    """``(Jᵀ, r)`` with ``JᵀJ = hs`` and ``Jᵀr = −bs`` on the directions whose
+    eigenvalue exceeds `RCOND`·λ_max (the others: zero rows of J and r).
+
+    The Cholesky factor ``hs = LLᵀ`` gives ``J = Lᵀ``, ``r = −L⁻¹bs`` where hs is
+    positive definite and no eigenvalue lies below the cut: λ_max by power iteration,
+    λ_min by inverse iteration with L (each iterate's Rayleigh quotient bounds λ_min from
+    above, and a near-null direction, far below the next eigenvalue, is found at once).
+    Otherwise the eigendecomposition ``hs = VΛVᵀ`` gives ``J = Λ^{½}Vᵀ`` with the small
+    eigenvalues dropped; only the branch taken runs."""
+    p = hs.shape[0]
+    low = jnp.linalg.cholesky(hs)
+    start = jnp.ones(p) + jnp.arange(p) / p
+
+    def power(_, x):
+        y = hs @ x
+        return y / jnp.linalg.norm(y)
+
+    def inverse(_, x):
+        y = jax.scipy.linalg.solve_triangular(low, x, lower=True)
+        y = jax.scipy.linalg.solve_triangular(low.T, y, lower=False)
+        return y / jnp.linalg.norm(y)
+
+    x_max = jax.lax.fori_loop(0, _ITERATIONS, power, start / jnp.linalg.norm(start))
+    x_min = jax.lax.fori_loop(0, _ITERATIONS, inverse, start / jnp.linalg.norm(start))
+    lam_max, lam_min = x_max @ hs @ x_max, x_min @ hs @ x_min
+    ok = jnp.all(jnp.isfinite(low)) & (lam_min > RCOND * lam_max)
+
+    def by_cholesky(_):
+        return low.T, -jax.scipy.linalg.solve_triangular(low, bs, lower=True)
+
+    def by_eigh(_):
+        lam, v = jnp.linalg.eigh(hs)
+        keep = lam > RCOND * lam[-1]
+        s = jnp.sqrt(jnp.where(keep, lam, 1.0))
+        jt = jnp.where(keep[:, None], s[:, None] * v.T, 0.0)
+        return jt, jnp.where(keep, -(v.T @ bs) / s, 0.0)
+
+    return jax.lax.cond(ok, by_cholesky, by_eigh, None)
+
+
 def _compressed(z, problem: LeastSquares):
     """Square-root information residual `(p + 1,)` and its Jacobian `(p + 1, p)` at
     `problem.z` (NaN elsewhere: the normal equations are only known there)."""
@@ -102,11 +148,7 @@ def _compressed(z, problem: LeastSquares):
     # (a zero column would leave a Gauss–Newton step undefined)
     hs = problem.h * jnp.outer(f, f) + jnp.diag(1.0 - problem.free)
     bs = problem.b * f
-    lam, v = jnp.linalg.eigh(0.5 * (hs + hs.T))
-    keep = lam > RCOND * lam[-1]
-    s = jnp.sqrt(jnp.where(keep, lam, 1.0))
-    jt = jnp.where(keep[:, None], s[:, None] * v.T, 0.0)
-    r = jnp.where(keep, -(v.T @ bs) / s, 0.0)
+    jt, r = _square_root(0.5 * (hs + hs.T), bs)
     tail = jnp.sqrt(jnp.maximum(problem.cost - r @ r, 0.0))
     res = jnp.concatenate([r, tail[None]])
     jac = jnp.concatenate([jt, jnp.zeros((1, jt.shape[1]), jt.dtype)])
@@ -144,6 +186,9 @@ class Solution:
     converged: bool
     reason: str
     steps: int
+    #: ``normal(theta, data)`` where the solver evaluated it at `theta` itself (None
+    #: otherwise): a caller's covariance needs no further pass over the data
+    normal: tuple | None = None
 
 
 @eqx.filter_jit
@@ -302,6 +347,8 @@ def solve(
     if damping is not None:
         state = eqx.tree_at(lambda st: st.search_state.step_size, state, jnp.asarray(1.0 / damping))
     done, result, steps = False, optx.RESULTS.successful, 0
+    # the last two points evaluated (the accepted iterate is one of them, or the start)
+    seen = [(np.asarray(z), (h, b, cost))]
     while steps < max_steps:
         z, state, done, result, z_eval = _step(solver, z, problem, state)
         steps += 1
@@ -309,8 +356,11 @@ def solve(
             break
         theta = where.theta(problem, z_eval)
         h, b, cost = normal_at(normal, theta, data)
+        seen = [*seen[-1:], (np.asarray(z_eval), (h, b, cost))]
         hf, bf = _restrict(h, b, where.index)
         problem = eqx.tree_at(lambda q: (q.z, q.h, q.b, q.cost), problem, (z_eval, hf, bf, cost))
+    z_final = np.asarray(z)
+    at = next((nq for zs, nq in seen if np.array_equal(zs, z_final)), None)
     theta = where.theta(problem, z)
     cost = float(jnp.sum(state.f_info.residual**2))  # |R|² = cost
     ok = bool(done) and bool(result == optx.RESULTS.successful) and bool(np.isfinite(cost))
@@ -322,4 +372,4 @@ def solve(
         reason = f"no convergence in {max_steps} steps"
     else:
         reason = str(result).split("<", 1)[-1].rstrip(">") or "solver failed"
-    return Solution(np.array(theta), cost, ok, reason, steps)
+    return Solution(np.array(theta), cost, ok, reason, steps, at)

@@ -104,6 +104,34 @@ def test_pose_normal_equations_with_maps_are_those_of_the_pure_residual():
     np.testing.assert_allclose(c, rw @ rw + theta @ lam @ theta, rtol=1e-12)
 
 
+def test_the_per_region_normal_equations_are_those_of_each_region_alone():
+    """`linearise`'s `h_g`, `b_g`, cost per region (one product over each region's own
+    poses) against `pose_normal` with the weights of the other regions' poses zero, maps
+    included."""
+    s = _series(60, 1)
+    p = pf.n_params(True)
+    rng = np.random.default_rng(7)
+    theta = rng.normal(0, 1e-4, p)
+    w = rng.uniform(0.5, 2.0, (s.n, 6)) * np.array([1e6] * 3 + [1e4] * 3) ** 2
+    z0, x0 = s.start
+    label = pf.regions(s)
+    assert label.max() >= 2
+    lin = pf.linearise(theta, pf._data(z0, x0, s, w, False), label)
+    costs = []
+    normal = jax.jit(pf.pose_normal)
+    for g in range(label.max() + 1):
+        w_g = np.where((label == g)[:, None], w, 0.0)
+        h, b, c = normal(jnp.asarray(theta), pf._data(z0, x0, s, w_g, False))
+        scale = np.sqrt(np.diag(np.asarray(h)))
+        scale = np.where(scale > 1e-9 * np.median(scale), scale, 1.0)
+        np.testing.assert_allclose(
+            lin.h_g[g] / np.outer(scale, scale), np.asarray(h) / np.outer(scale, scale), atol=1e-12
+        )
+        np.testing.assert_allclose(lin.b_g[g], np.asarray(b), rtol=1e-10, atol=1e-10 * abs(b).max())
+        costs.append(float(c))
+    np.testing.assert_allclose(lin.cost, sum(costs), rtol=1e-12)
+
+
 @pytest.mark.parametrize("estimate", [("link_length",), ("link_length", "joint_map")])
 def test_one_step_cross_validation_equals_a_refit_without_the_region(estimate):
     """The held-out errors of a region by one Gauss–Newton step from the fit equal those

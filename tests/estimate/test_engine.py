@@ -256,3 +256,38 @@ def test_a_gaussian_prior_gives_the_closed_form_map_estimate_and_posterior(linea
     h0 = aw.T @ aw
     kept0, rep0 = identifiability(h0, names, free, np.ones(5, bool))
     assert rep0["dropped"] and not kept0.all()
+
+
+@pytest.mark.parametrize("deficient", [False, True])
+def test_the_square_root_form_reproduces_the_normal_equations(deficient):
+    """The solver's residual and Jacobian: ``JᵀJ = Hs``, ``Jᵀr = −bs`` and ``|r|²`` the
+    cost, by the Cholesky factor (full rank) or by the eigendecomposition with the null
+    direction dropped (rank-deficient: an exact copy of a column)."""
+    from robtraj.estimate._solve import LeastSquares, _compressed
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(30, 6)) * np.array([1.0, 1e3, 1e-3, 5.0, 1.0, 2.0])
+    if deficient:
+        a[:, 5] = 2.0 * a[:, 4]
+    r0 = rng.normal(size=30)
+    h, b, cost = a.T @ a, a.T @ r0, float(r0 @ r0)
+    scale = np.sqrt(np.diag(h))
+    problem = LeastSquares(*(jnp.asarray(x) for x in (np.zeros(6), h, b, cost, scale, np.ones(6))))
+    res, jac = (np.asarray(x) for x in _compressed(jnp.zeros(6), problem))
+    hs, bs = h / np.outer(scale, scale), b / scale
+    # rank-deficient: the null direction n leaves the Hessian and the gradient (bs ⟂ n)
+    np.testing.assert_allclose(jac.T @ jac, hs, atol=1e-10)
+    np.testing.assert_allclose(jac.T @ res, -bs, atol=1e-10)
+    np.testing.assert_allclose(res @ res, cost, rtol=1e-10)
+    assert np.linalg.matrix_rank(jac, tol=1e-8) == (5 if deficient else 6)
+
+
+def test_the_solution_carries_the_normal_equations_at_the_estimate():
+    t = np.linspace(0, 4, 60)
+    y = 2.0 * np.exp(-1.3 * t) + 0.5 + np.random.default_rng(1).normal(0, 0.01, t.size)
+    data = (jnp.asarray(t), jnp.asarray(y))
+    sol = solve(_exp_normal, data, np.array([1.0, 0.5, 0.0]), np.ones(3, bool))
+    assert sol.converged and sol.normal is not None
+    ref = normal_at(_exp_normal, jnp.asarray(sol.theta), data)
+    for got, want in zip(sol.normal, ref):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
