@@ -8,6 +8,11 @@ took 13× longer after a JAX kernel than before it, and the pose-level workflow
 parameters, each followed by a JAX pass over the poses) ran 20 % faster with one BLAS
 thread. `serial_blas` limits the BLAS libraries to one thread while the function runs
 (`threadpoolctl`; the user's setting is restored afterwards).
+
+OpenBLAS's limit is process-wide, and threadpoolctl lets only the thread that set it
+change it back while that thread lives: the outermost decorated call should run on a
+thread that outlives the ones it starts (as `run_workflow` does). Two unrelated threads
+entering decorated calls at once can leave BLAS at one thread afterwards.
 """
 
 from __future__ import annotations
