@@ -681,6 +681,7 @@ def linearise(theta: np.ndarray, data: PoseData, label: np.ndarray) -> Linearisa
     )
 
 
+@functools.cache
 def zero_map_prior() -> GaussianPrior:
     """No prior, in the layout of the prior of every map (zero precision): normal
     equations without a prior share the compilation of those of a fit of the maps."""
@@ -768,8 +769,9 @@ def fit_poses(
     - `map_prior`: (σ_f, ℓ) [rad] of the maps' prior (`robtraj.model.map_precision`);
       default the terms' own (`Term.precision`). A map's knots far from the series'
       angles are held at zero, their prior mean (`map_knots_supported`).
-    - `structure`: the data's normal matrix at the effects' zero with the rigid
-      transforms of `init` (no prior; `structure_normal`), where the caller has it.
+    - `structure`: the data's normal matrix at the effects' zero (no prior;
+      `structure_normal`), where the caller has it (a selection: at its nominal fit's
+      rigid transforms); default: at the start's rigid transforms.
     - `maps_layout`: θ in the layout with the maps' block even where no map is
       estimated (held at zero), so that the fit shares the compiled normal equations of
       the fits that estimate maps (a workflow whose candidates include them).

@@ -70,10 +70,10 @@ def normal_terms(
     n_groups = members.shape[0]
     rw = sqrt_w * r
     jw = sqrt_w[..., None] * j
-    pad = n * jnp.ones_like(members)
+    # each pose's group (the padding, index N, dropped)
     group = (
         jnp.zeros(n, members.dtype)
-        .at[jnp.where(members < n, members, pad)]
+        .at[members]
         .set(
             jnp.broadcast_to(jnp.arange(n_groups, dtype=members.dtype)[:, None], members.shape),
             mode="drop",

@@ -14,9 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -120,32 +118,17 @@ class _Round:
         self.maps = lin.theta.size > N_PARAMS
         self._cache = {}
 
-    def _systems(self, effects, map_prior):
-        p = self.lin.theta.size
-        free0 = _free_mask(effects, self.rigid, self.series, self.maps)
-        pr = map_prior_of(effects, map_prior)
-        lam = pr.dense(p) if pr.size else None
-        h = self.h_struct if lam is None else self.h_struct + lam
-        schur = marginal(h, free0) if self.maps else None
-        return lam, schur, RegionSystems(self.lin, lam, free0)
-
-    def prepare(self, effects, map_priors) -> None:
-        """The systems of `effects` under each of `map_priors` not built yet, built on up
-        to one thread per core (their factorisations run outside Python's lock)."""
-        todo = [mp for mp in map_priors if (mp, map_terms_of(effects)) not in self._cache]
-        workers = min(len(todo), os.cpu_count() or 1)
-        if workers < 2:
-            return
-        with ThreadPoolExecutor(workers) as pool:
-            built = pool.map(lambda mp: self._systems(effects, mp), todo)
-            self._cache.update(((mp, map_terms_of(effects)), b) for mp, b in zip(todo, built))
-
     def score(self, effects, map_prior) -> dict[str, Any]:
         """``{"cv", "free", "steps", "prior"}`` of the model `effects` under `map_prior`."""
+        p = self.lin.theta.size
         free0 = _free_mask(effects, self.rigid, self.series, self.maps)
         key = (map_prior, map_terms_of(effects))
         if key not in self._cache:
-            self._cache[key] = self._systems(effects, map_prior)
+            pr = map_prior_of(effects, map_prior)
+            lam = pr.dense(p) if pr.size else None
+            h = self.h_struct if lam is None else self.h_struct + lam
+            schur = marginal(h, free0) if self.maps else None
+            self._cache[key] = (lam, schur, RegionSystems(self.lin, lam, free0))
         lam, schur, systems = self._cache[key]
         free, _ = identifiable(self.h_struct, free0, schur)
         steps = systems.steps(free)
@@ -273,7 +256,6 @@ def select(
             # (the last round linearised at `current` where it named nothing)
             lin = linearise(theta, _data(current.z0, current.x0, series, w, False), label)
             rnd_ = _Round(lin, h_struct(theta.size), series, rigid)
-        rnd_.prepare(named, prior_grid)
         table = [(mp, rnd_.score(named, mp)["cv"]) for mp in prior_grid]
         best = min(table, key=lambda x: _cost(x[1]))[0]
         steps[-1]["final_map_prior"] = {
