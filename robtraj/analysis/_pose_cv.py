@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
+from ..estimate import spd_inverse
 from ._pose_normal import map_jvp
 
 
@@ -101,10 +102,15 @@ def solve_scaled(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 class RegionSystems:
     """The systems ``(H + Λ − H_g) δ = b − Λθ − b_g`` of every left-out region g (and of
     the whole series, last), with the free knots of the maps eliminated once: per
-    system, the Cholesky factor of the map block gives the Schur complement onto the
-    other entries, `(n_dense, n_dense)`, from which the step of any model that shares
-    those knots (and the prior) is a small solve. A round of the search scores every
-    candidate from one set of these."""
+    system, the solve of the map block gives the Schur complement onto the other
+    entries, `(n_dense, n_dense)`, from which the step of any model that shares those
+    knots (and the prior) is a small solve. A round of the search scores every
+    candidate from one set of these.
+
+    A region's poses touch only the knots near their angles (a few hundred of a
+    thousand), so its map block is that of the whole series less a term on those knots:
+    every region's solve is the whole series' inverse corrected on its own knots
+    (`_Downdates`), one factorisation in all instead of one per region."""
 
     def __init__(self, lin: Linearisation, prior: np.ndarray | None, map_free: np.ndarray):
         n = self.n_dense = lin.n_dense
@@ -125,12 +131,25 @@ class RegionSystems:
             return
         h_mm = _block(lin.h, m, m) + lam(m, m)
         h_md = _block(lin.h, m, d) + lam(m, d)
+        rhs = np.concatenate([h_md, b[m][:, None]], 1)
+        whole = _Downdates.of(h_mm, rhs)
         for g in range(lin.n_regions + 1):
-            last = g == lin.n_regions
-            a_mm = h_mm if last else h_mm - _block(lin.h_g[g], m, m)
-            a_md = h_md if last else h_md - _block(lin.h_g[g], m, d)
-            r_m = b[m] - bg[g, m]
-            both = solve_scaled(a_mm, np.concatenate([a_md, r_m[:, None]], 1))
+            # the region's free knots, its block of H_mm there and its rows of [H_md, b_m]
+            if g < lin.n_regions:
+                on = _touched(lin.h_g[g], m)
+                k = m[on]
+                u = _block(lin.h_g[g], k, k)
+                lost = np.concatenate([_block(lin.h_g[g], k, d), lin.b_g[g, k][:, None]], 1)
+            else:  # the whole series
+                on, u, lost = np.zeros(0, int), np.zeros((0, 0)), np.zeros((0, n + 1))
+            both = None if whole is None else whole.solve(on, u, lost)
+            if both is None:
+                a_mm, r = h_mm.copy(), rhs.copy()
+                a_mm[np.ix_(on, on)] -= u
+                r[on] -= lost
+                both = solve_scaled(a_mm, r)
+            a_md = h_md.copy()
+            a_md[on] -= lost[:, :-1]
             ymd, ym = both[:, :-1], both[:, -1]
             self.schur[g] = self.schur[g] - a_md.T @ ymd
             self.rhs[g] = self.rhs[g] - a_md.T @ ym
@@ -151,6 +170,50 @@ class RegionSystems:
             if self.m.size:
                 out[g, self.m] = self.ym[g] - self.y[g][:, dense] @ x
         return out
+
+
+class _Downdates:
+    """Solves ``(A − E U Eᵀ) x = rhs − E l`` for one symmetric positive definite A and
+    one right-hand side `rhs`, where E picks a few of A's rows (a region's knots): A is
+    inverted once (the Cholesky factor of its column-scaled form) and each solve is the
+    Woodbury identity ``(A − EUEᵀ)⁻¹ = A⁻¹ + A⁻¹E U (I − C U)⁻¹ EᵀA⁻¹``,
+    ``C = EᵀA⁻¹E``, a system of the picked rows' size (no inverse of U, which a
+    region's data need not make regular)."""
+
+    def __init__(self, inv: np.ndarray, scale: np.ndarray, rhs: np.ndarray):
+        # the inverse of the scaled matrix, the scale and A⁻¹·rhs in scaled units
+        self.inv, self.scale = inv, scale
+        self.base = inv @ (rhs / scale[:, None])
+
+    @classmethod
+    def of(cls, a: np.ndarray, rhs: np.ndarray) -> _Downdates | None:
+        """None where the scaled `a` is not numerically positive definite."""
+        d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
+        inv = spd_inverse(a / np.outer(d, d))
+        return None if inv is None else cls(inv, d, rhs)
+
+    def solve(self, on: np.ndarray, u: np.ndarray, lost: np.ndarray) -> np.ndarray | None:
+        """x for the rows `on`, their block `u` and right-hand side rows `lost`; None
+        where ``I − CU`` is singular."""
+        d, inv = self.scale, self.inv
+        if not on.size:
+            return self.base / d[:, None]
+        ds = d[on]
+        us = u / np.outer(ds, ds)
+        cols = inv[:, on]
+        y = self.base - cols @ (lost / ds[:, None])
+        try:
+            z = scipy.linalg.solve(np.eye(on.size) - cols[on] @ us, y[on], check_finite=False)
+        except np.linalg.LinAlgError:
+            return None
+        return (y + cols @ (us @ z)) / d[:, None]
+
+
+def _touched(h_g: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Positions in `m` (the free knots) of the knots a region's normal matrix `h_g`
+    touches: a knot's row is zero exactly where its diagonal is (``Σ φ²|u|²``, Cauchy–
+    Schwarz), and so is its entry of b."""
+    return np.flatnonzero(np.diagonal(h_g)[m] != 0.0)
 
 
 def _block(a: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

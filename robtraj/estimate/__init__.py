@@ -29,6 +29,7 @@ from ._uncertainty import (
     identifiability,
     jackknife_covariance,
     robust_covariance,
+    spd_inverse,
 )
 from ._weighting import (
     LedFeatures,
@@ -50,6 +51,7 @@ __all__ = [
     "column_scale",
     "covariance",
     "robust_covariance",
+    "spd_inverse",
     "effective_clusters",
     "default_solver",
     "identifiability",

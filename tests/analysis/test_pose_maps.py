@@ -132,6 +132,33 @@ def test_the_per_region_normal_equations_are_those_of_each_region_alone():
     np.testing.assert_allclose(lin.cost, sum(costs), rtol=1e-12)
 
 
+@pytest.mark.parametrize("woodbury", [True, False])
+def test_the_left_out_systems_equal_direct_solves_of_each_region(woodbury, monkeypatch):
+    """`RegionSystems` (the map block inverted once and corrected on each region's own
+    knots; or, where that inverse fails, one solve per region) against a direct solve
+    of ``(H + Λ − H_g) δ = b − Λθ − b_g`` on the free entries per region, and of the
+    whole series."""
+    if not woodbury:
+        monkeypatch.setattr(cv._Downdates, "of", classmethod(lambda cls, a, rhs: None))
+    s = _series(300, 3, [PeriodicJointError(3, 11, 2e-4)])
+    estimate = ("link_length", "joint_map")
+    f = pf.fit_poses(s, estimate=estimate, block_sigma=NOISE)
+    lin = pf.linearise(
+        f.theta, pf._data(f.z0, f.x0, s, pf._weights(s, NOISE), False), pf.regions(s)
+    )
+    assert lin.n_regions >= 5
+    lam = pf.map_prior_of(estimate).dense(f.theta.size)
+    got = cv.RegionSystems(lin, lam, f.free).steps(f.free)
+    h, b = cv.posterior(lin, lam)
+    idx = np.flatnonzero(f.free)
+    for g in range(lin.n_regions + 1):
+        hg = h - (lin.h_g[g] if g < lin.n_regions else 0.0)
+        bg = b - (lin.b_g[g] if g < lin.n_regions else 0.0)
+        want = np.zeros_like(got[g])
+        want[idx] = np.linalg.solve(hg[np.ix_(idx, idx)], bg[idx])
+        np.testing.assert_allclose(got[g], want, rtol=1e-6, atol=1e-9 * abs(want).max())
+
+
 @pytest.mark.parametrize("estimate", [("link_length",), ("link_length", "joint_map")])
 def test_one_step_cross_validation_equals_a_refit_without_the_region(estimate):
     """The held-out errors of a region by one Gauss–Newton step from the fit equal those

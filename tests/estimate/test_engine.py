@@ -291,3 +291,33 @@ def test_the_solution_carries_the_normal_equations_at_the_estimate():
     ref = normal_at(_exp_normal, jnp.asarray(sol.theta), data)
     for got, want in zip(sol.normal, ref):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+
+@pytest.mark.parametrize("log_cond", [2.0, 8.0, 11.0])
+def test_covariance_is_the_eigen_pseudo_inverse_whatever_route_it_takes(log_cond, monkeypatch):
+    """`covariance` inverts a well-conditioned scaled matrix by Cholesky and falls back
+    to the eigendecomposition toward `RCOND`: on matrices whose smallest eigenvalue is
+    10^-log_cond (10²: Cholesky; 10⁸: the eigendecomposition, everything kept; 10¹¹:
+    beyond 1/RCOND, one direction left out) it equals the pseudo-inverse built from
+    the spectrum."""
+    from robtraj.estimate import RCOND
+
+    calls = []
+    eigh = np.linalg.eigh
+    monkeypatch.setattr(np.linalg, "eigh", lambda a: calls.append(1) or eigh(a))
+    rng = np.random.default_rng(4)
+    p = 40
+    v, _ = np.linalg.qr(rng.normal(size=(p, p)))
+    lam = np.logspace(0.0, -1.0, p)
+    lam[-1] = 10.0**-log_cond
+    d = rng.uniform(0.1, 10.0, p)
+    h = (v * lam) @ v.T * np.outer(d, d)
+    # the covariance sees the matrix scaled to a unit diagonal
+    e = np.sqrt(np.diag(h))
+    lam_s, v_s = eigh(h / np.outer(e, e))
+    keep = lam_s > RCOND * lam_s[-1]
+    want = (v_s[:, keep] / lam_s[keep]) @ v_s[:, keep].T / np.outer(e, e)
+    cov, rank = covariance(h, np.ones(p, bool))
+    assert len(calls) == (0 if log_cond < 5 else 1)
+    assert rank == keep.sum() == (p - 1 if log_cond > 10 else p)
+    np.testing.assert_allclose(cov, want, rtol=1e-9, atol=1e-12 * abs(want).max())
