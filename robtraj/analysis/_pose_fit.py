@@ -23,6 +23,7 @@ from .._blas import serial_blas
 from .._errors import UserError
 from ..estimate import (
     GaussianPrior,
+    composed,
     covariance,
     identifiability,
     jackknife_covariance,
@@ -619,45 +620,61 @@ def _pose_residual(theta, d: PoseData):
 _pose_residual_jit = eqx.filter_jit(_pose_residual)
 
 
+@composed
 def pose_normal(theta, d: PoseData):
     """``(H, b, cost)`` of the weighted pose residuals plus the prior (`robtraj.estimate.
     solve`): the dense columns' Jacobian of a few thousand poses is small enough to
-    form, the maps' block is accumulated from their active knots (`_pose_normal`)."""
-    p = theta.shape[0]
+    form, the maps' block is accumulated from their active knots (`_pose_normal`). The
+    Jacobian and the normal equations are two kernels (`composed`): `group_terms`
+    shares the first."""
     if d.rigid_only:
-        part = _effect_part(theta, d.joints, d.drift, d.torque)
-
-        def r12(t12):
-            res = _rigid_residual(t12, d.z0, d.x0, *part, d.measured)
-            return (d.sqrt_w * res).reshape(-1)
-
-        r = r12(theta[:12])
-        j = jax.jacfwd(r12)(theta[:12])
-        h = jnp.zeros((p, p), r.dtype).at[:12, :12].set(j.T @ j)
-        b = jnp.zeros(p, r.dtype).at[:12].set(-(j.T @ r))
-        c = r @ r
-    else:
-        everyone = jnp.arange(d.joints.shape[0], dtype=jnp.int32)[None]
-        h, b, c = (x[0] for x in _group_normal(theta, d, everyone))
-    return d.prior.add_to(h, b, c, theta[d.prior.index])
-
-
-def _group_normal(theta, d: PoseData, members):
-    """``(H, b, cost)`` of the weighted pose residuals per group of poses (`members`, as
-    `_pose_normal.group_members` gives; no prior)."""
-    r, j = _jacobian(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
-    n_map = theta.shape[0] - N_PARAMS
-    return normal_terms(r, j, d.sqrt_w, _OFFSET, d.map_index, d.map_weight, n_map, members)
+        return _rigid_normal(theta, d)
+    everyone = jnp.arange(d.joints.shape[0], dtype=jnp.int32)[None]
+    h, b, c, _, _ = group_terms(theta, d, everyone)
+    return _with_prior(h[0], b[0], c[0], theta, d.prior)
 
 
 @jax.jit
+def _rigid_normal(theta, d: PoseData):
+    """`pose_normal` where only the 12 rigid parameters are differentiated."""
+    p = theta.shape[0]
+    part = _effect_part(theta, d.joints, d.drift, d.torque)
+
+    def r12(t12):
+        res = _rigid_residual(t12, d.z0, d.x0, *part, d.measured)
+        return (d.sqrt_w * res).reshape(-1)
+
+    r = r12(theta[:12])
+    j = jax.jacfwd(r12)(theta[:12])
+    h = jnp.zeros((p, p), r.dtype).at[:12, :12].set(j.T @ j)
+    b = jnp.zeros(p, r.dtype).at[:12].set(-(j.T @ r))
+    return d.prior.add_to(h, b, r @ r, theta[d.prior.index])
+
+
+@jax.jit
+def _with_prior(h, b, c, theta, prior: GaussianPrior):
+    return prior.add_to(h, b, c, theta[prior.index])
+
+
+_jacobian_jit = jax.jit(_jacobian)
+_normal_terms_jit = jax.jit(normal_terms, static_argnames=("offset", "n_map"))
+
+
 def group_terms(theta, d: PoseData, members):
     """Per group of poses (`members` `(G, M)`, `_pose_normal.group_members`): ``JᵀWJ`` `(G, P, P)`,
     ``−JᵀWr`` `(G, P)`, ``rᵀWr`` `(G,)`; and the unweighted residual `(N, 6)` and dense
     Jacobian `(N, 6, N_PARAMS)` (the maps' columns follow from it: `_pose_normal`)."""
-    r, j = _jacobian(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
-    n_map = theta.shape[0] - N_PARAMS
-    h, b, c = normal_terms(r, j, d.sqrt_w, _OFFSET, d.map_index, d.map_weight, n_map, members)
+    r, j = _jacobian_jit(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
+    h, b, c = _normal_terms_jit(
+        r,
+        j,
+        d.sqrt_w,
+        offset=_OFFSET,
+        index=d.map_index,
+        weight=d.map_weight,
+        n_map=theta.shape[0] - N_PARAMS,
+        members=members,
+    )
     return h, b, c, r, j
 
 

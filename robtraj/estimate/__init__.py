@@ -19,7 +19,15 @@ from ._poses import (
 from ._poses_io import read_poses, write_poses
 from ._prior import GaussianPrior, no_prior, term_prior
 from ._registration import Registration, register_leds
-from ._solve import LeastSquares, Solution, default_solver, normal_at, padded_size, solve
+from ._solve import (
+    LeastSquares,
+    Solution,
+    composed,
+    default_solver,
+    normal_at,
+    padded_size,
+    solve,
+)
 from ._static import static_segments
 from ._uncertainty import (
     RCOND,
@@ -58,6 +66,7 @@ __all__ = [
     "jackknife_covariance",
     "no_prior",
     "normal_at",
+    "composed",
     "padded_size",
     "solve",
     "term_prior",

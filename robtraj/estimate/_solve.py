@@ -191,10 +191,35 @@ class Solution:
     normal: tuple | None = None
 
 
-@eqx.filter_jit
 def normal_at(normal: Callable, theta, data):
-    """``normal(theta, data)`` compiled (once per `normal` and data shape)."""
+    """``normal(theta, data)`` compiled (once per `normal` and data shape); a `composed`
+    normal function is called as it is."""
+    if getattr(normal, "composed", False):
+        return normal(theta, data)
+    return _compiled_normal(normal, theta, data)
+
+
+@eqx.filter_jit
+def _compiled_normal(normal: Callable, theta, data):
     return normal(theta, data)
+
+
+def composed(normal: Callable) -> Callable:
+    """Mark `normal` as composed of compiled kernels of its own, which `normal_at` calls
+    as it is instead of compiling the whole: a kernel it shares with other functions
+    (the Jacobian of the observations, say) then compiles once for all of them. It must
+    still be jit-compatible."""
+    normal.composed = True
+    return normal
+
+
+def compile_normal(ahead, normal: Callable, theta, data):
+    """Compile `normal_at`'s kernel for `normal` and these shapes on `ahead`'s background
+    thread (a `robtraj.estimate._compile_ahead.CompileAhead`; a `composed` normal compiles
+    its own kernels when first called); returns the future."""
+    if getattr(normal, "composed", False):
+        return ahead.run(lambda: None)
+    return ahead.submit(_compiled_normal, normal, theta, data)
 
 
 def _initial_state(solver, p: int):
@@ -288,7 +313,8 @@ def solve(
     """Minimise ``cost(θ)`` over the `free` entries of θ, starting at `theta0`.
 
     - `normal(theta, data) -> (H, b, cost)`: pure and jit-compatible (module docstring);
-      define it at module level so that repeated solves share one compilation.
+      define it at module level so that repeated solves share one compilation (or
+      mark it `composed`, when it runs kernels of its own).
     - `free`: `(p,)` bool mask; the other entries stay at `theta0`.
     - `n_residuals`: number of scalar residuals behind `normal`; fewer than free
       parameters is a `UserError`.

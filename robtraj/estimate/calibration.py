@@ -86,7 +86,7 @@ from ._next_poses import next_poses
 from ._noise import NoiseModel
 from ._observation_noise import observation_noise
 from ._prior import term_prior
-from ._solve import compile_steps, default_solver, normal_at, solve
+from ._solve import compile_normal, compile_steps, default_solver, normal_at, solve
 from ._uncertainty import covariance, effective_clusters, identifiability, robust_covariance
 
 __all__ = [
@@ -732,7 +732,7 @@ def _structure(
     first = []
     if normal:
         theta0 = jnp.zeros(p)
-        first.append(ahead.submit(normal_at, bundle_normal, theta0, bundle))
+        first.append(compile_normal(ahead, bundle_normal, theta0, bundle))
     if solver is not None:
         first.append(compile_steps(ahead, solver, p))
         ahead.submit(cp.evaluate, jnp.zeros(q), problem.constellation, problem, chunks)
