@@ -321,3 +321,32 @@ def test_covariance_is_the_eigen_pseudo_inverse_whatever_route_it_takes(log_cond
     assert len(calls) == (0 if log_cond < 5 else 1)
     assert rank == keep.sum() == (p - 1 if log_cond > 10 else p)
     np.testing.assert_allclose(cov, want, rtol=1e-9, atol=1e-12 * abs(want).max())
+
+
+def test_a_composed_normal_function_runs_its_own_kernels_with_the_same_solution():
+    """A normal function marked `composed` is called as it is on every evaluation (its
+    Python runs each time, its kernels are its own), and the solve is that of the same
+    function compiled whole."""
+    from robtraj.estimate import composed
+
+    calls = []
+    residual = jax.jit(_exp_residual)
+    jacobian = jax.jit(jax.jacfwd(_exp_residual))
+
+    @composed
+    def normal(theta, data):
+        calls.append(1)
+        t, y = data
+        r, j = residual(theta, t, y), -jacobian(theta, t, y)
+        return j.T @ j, j.T @ r, r @ r
+
+    t = np.linspace(0, 4, 60)
+    y = 2.0 * np.exp(-1.3 * t) + 0.5 + np.random.default_rng(1).normal(0, 0.01, t.size)
+    data = (jnp.asarray(t), jnp.asarray(y))
+    start = np.array([1.0, 0.5, 0.0])
+    got = solve(normal, data, start, np.ones(3, bool))
+    want = solve(_exp_normal, data, start, np.ones(3, bool))
+    assert got.converged and len(calls) == got.steps  # the start and every step but the last
+    np.testing.assert_allclose(got.theta, want.theta, rtol=1e-10)
+    for a, b in zip(normal_at(normal, jnp.asarray(start), data), _exp_normal(start, data)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
