@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from ..estimate import spd_inverse
+from ..estimate import column_scale, spd_inverse
 from ._pose_normal import map_jvp
 
 
@@ -89,7 +89,7 @@ def step(h: np.ndarray, b: np.ndarray, free: np.ndarray) -> np.ndarray:
 def solve_scaled(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """``a⁻¹ rhs`` for a symmetric `a`: Cholesky of the column-scaled matrix, or its
     least-squares solution where that is not positive definite."""
-    d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
+    d = column_scale(a)
     scaled = a / np.outer(d, d)
     r = rhs / (d[:, None] if rhs.ndim == 2 else d)
     try:
@@ -188,7 +188,7 @@ class _Downdates:
     @classmethod
     def of(cls, a: np.ndarray, rhs: np.ndarray) -> _Downdates | None:
         """None where the scaled `a` is not numerically positive definite."""
-        d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
+        d = column_scale(a)
         inv = spd_inverse(a / np.outer(d, d))
         return None if inv is None else cls(inv, d, rhs)
 
