@@ -1,12 +1,11 @@
 """Estimation: static segments, LED registration, weighting schemes, per-frame poses, and
 the one least-squares engine (`solve`, `identifiability`, `covariance`,
-`robust_covariance`, `field_covariance`; Gaussian priors on terms, `GaussianPrior`).
+`robust_covariance`; Gaussian priors on terms, `GaussianPrior`).
 
 Bundle calibration lives in `robtraj.estimate.calibration`.
 """
 
 from ._base_frame import base_frame_poses
-from ._model_error import ModelErrorField, field_covariance, random_features
 from ._noise import NoiseModel, estimate_noise
 from ._observation_noise import observation_angles, observation_noise
 from ._poses import (
@@ -49,9 +48,6 @@ from ._weighting import (
 )
 
 __all__ = [
-    "ModelErrorField",
-    "field_covariance",
-    "random_features",
     "NoiseModel",
     "estimate_noise",
     "observation_angles",

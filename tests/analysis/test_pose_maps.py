@@ -104,30 +104,6 @@ def test_pose_normal_equations_with_maps_are_those_of_the_pure_residual():
     np.testing.assert_allclose(c, rw @ rw + theta @ lam @ theta, rtol=1e-12)
 
 
-def test_the_whitened_jacobian_rows_are_those_of_the_pure_residual():
-    """`jacobian_rows` (per component, sparse, maps' columns from the active knots)
-    against ``jax.jacfwd`` of `_raw_residual`, whitened, on a subset of columns."""
-    from robtraj.analysis._pose_normal import jacobian_rows
-
-    s = _series(40, 2)
-    p = pf.n_params(True)
-    rng = np.random.default_rng(6)
-    theta = rng.normal(0, 1e-4, p)
-    w = rng.uniform(0.5, 2.0, (s.n, 6)) * np.array([1e6] * 3 + [1e4] * 3) ** 2
-    z0, x0 = s.start
-    d = pf._data(z0, x0, s, w, False, pf.map_prior_of(("joint_map",)))
-    lin = pf.linearise(theta, d, np.zeros(s.n, int))
-    cols = np.flatnonzero(rng.uniform(size=p) < 0.5)
-    rows = jacobian_rows(
-        lin.j, np.sqrt(w), lin.offset, lin.map_index, lin.map_weight, p - pf.N_PARAMS, cols
-    )
-    args = [jnp.asarray(a) for a in (z0, x0, s.joints, s.drift_variable, s.torque, s.measured)]
-    j = np.asarray(jax.jit(jax.jacfwd(pf._raw_residual))(jnp.asarray(theta), *args))
-    want = np.sqrt(w)[..., None] * j[:, :, cols]
-    got = np.stack([r.toarray() for r in rows], 1)
-    np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
-
-
 def test_the_per_region_normal_equations_are_those_of_each_region_alone():
     """`linearise`'s `h_g`, `b_g`, cost per region (one product over each region's own
     poses) against `pose_normal` with the weights of the other regions' poses zero, maps
