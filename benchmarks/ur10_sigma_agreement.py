@@ -11,7 +11,7 @@ outside the quoted σ listed and the median |z|.
 
 The same on a twin with known truth: both series' real poses (joint angles, tracker←base
 and flange←probe as fitted) measured on one simulated robot, A's named model, with the
-tracker noise (18 µm, 0.0033°): the A–B differences then come only from the designs, the
+tracker noise Series B reports (RMS of its standard deviations, position and rotation): the A–B differences then come only from the designs, the
 noise and the model error of the smaller models (the maps and compliance they leave out).
 There, each fit's parameters are also compared with the truth's.
 
@@ -38,7 +38,7 @@ NAMED = "named (maps, twists, lengths, compliance[1,2], offsets)"
 MODELS = {
     "offsets + lengths": ("link_length", "joint_offset"),
     "offsets + lengths + twists": ("link_length", "joint_offset", "link_twist"),
-    "named (maps, twists, lengths, compliance[1,2], offsets)": (
+    NAMED: (
         "joint_map",
         "link_twist",
         "link_length",
@@ -89,16 +89,17 @@ def against_truth(f: rd.PoseFit, truth: rd.PoseFit) -> dict:
     }
 
 
-def twin(series: dict, truth: rd.PoseFit, seed: int = 0) -> dict:
+def twin(series: dict, truth: rd.PoseFit, noise: np.ndarray, seed: int = 0) -> dict:
     """Both series' real poses measured on one simulated robot: `truth`'s effects (each
-    series' own rigid transforms refitted to it), tracker noise."""
+    series' own rigid transforms refitted to it), Gaussian tracker noise of σ `noise`
+    `(6,)` (position [m], rotation [rad] per axis)."""
     rng = np.random.default_rng(seed)
     out = {}
     for k, s in series.items():
         gen = truth if s.name == truth.series else rd.cross_predict(truth, s)
-        noise = np.c_[rng.normal(0, 18e-6, (s.n, 3)), rng.normal(0, np.deg2rad(0.0033), (s.n, 3))]
+        noise_k = rng.normal(0.0, noise, (s.n, 6))
         pose = jax.vmap(lambda p, d: (jaxlie.SE3(p) @ jaxlie.SE3.exp(d)).wxyz_xyz)(
-            jnp.asarray(gen.predict(s)), jnp.asarray(noise)
+            jnp.asarray(gen.predict(s)), jnp.asarray(noise_k)
         )
         out[k] = rd.PoseSeries(k, s.joints, np.asarray(pose), None, None, s.torque)
     return out
@@ -126,9 +127,12 @@ def main() -> None:
     a = ap.parse_args()
     series = {k: rd.load_series(k, a.data) for k in ("A", "B")}
     truth = rd.fit_poses(series["A"], estimate=MODELS[NAMED])
+    std = np.nan_to_num(np.asarray(series["B"].std, float))
+    noise = np.repeat([np.sqrt(np.mean(std[:, :3] ** 2)), np.sqrt(np.mean(std[:, 3:] ** 2))], 3)
+    print(f"twin's tracker noise: {noise[0] * 1e6:.1f} µm, {np.rad2deg(noise[3]):.4f}° per axis")
     twin_label = "twin (truth: A's named model)"
     out = {"real": {}, twin_label: {}}
-    for kind, data in (("real", series), (twin_label, twin(series, truth))):
+    for kind, data in (("real", series), (twin_label, twin(series, truth, noise))):
         print(kind)
         for label, estimate in MODELS.items():
             fa, fb = (rd.fit_poses(data[k], estimate=estimate) for k in ("A", "B"))
