@@ -1,24 +1,27 @@
 """Real UR10 data: do Series A and Series B agree within their quoted σ?
 
 The same robot measured twice: each effect parameter estimated on A and on B should agree
-within 2 combined σ for about 95 % of the parameters when the σ are honest. For three
+within 2 combined σ for about 95 % of the parameters when the σ are honest; the issue's
+target is ≥ 90 % (`TARGET`), asserted here for every model on the real series. For three
 models fitted on all poses of each series (the kinematic calibration without and with the
 link twists, and the model the workflow names), the share of shared effect parameters
 (maps excluded: their knots are not shared where the series' joint ranges differ) whose
-A–B difference lies within 2 combined σ: the quoted σ (`PoseFit.sigma`: the larger of
-Gauss–Newton and the region jackknife) and the Gauss–Newton σ alone; with the parameters
-outside the quoted σ listed and the median |z|.
+A–B difference lies within 2 combined σ: the quoted σ (`PoseFit.sigma`: the largest of
+Gauss–Newton, the region jackknife and the covariance under the model-error field) and
+the Gauss–Newton σ alone; with the parameters outside the quoted σ listed, the median
+|z| and each fit's model-error field (its variance ratios per correlation length).
 
 The same on a twin with known truth: both series' real poses (joint angles, tracker←base
 and flange←probe as fitted) measured on one simulated robot, A's named model, with the
-tracker noise Series B reports (RMS of its standard deviations, position and rotation): the A–B differences then come only from the designs, the
-noise and the model error of the smaller models (the maps and compliance they leave out).
-There, each fit's parameters are also compared with the truth's.
+tracker noise Series B reports (RMS of its standard deviations, position and rotation):
+the A–B differences then come only from the designs, the noise and the model error of
+the smaller models (the maps and compliance they leave out). There, each fit's
+parameters are also compared with the truth's.
 
     python benchmarks/ur10_sigma_agreement.py [--data PATH] [--json PATH]
 
-Results: `benchmarks/results/ur10_sigma_agreement.json`. Not a timing; it asserts
-nothing (the real figure is an open question for the richer models, docs/real_ur10.md).
+Results: `benchmarks/results/ur10_sigma_agreement.json`. Not a timing; exits non-zero
+when a model's real agreement is below `TARGET`.
 """
 
 from __future__ import annotations
@@ -34,6 +37,8 @@ import numpy as np
 
 from robtraj.analysis import real_data as rd
 
+#: share of the shared parameters within 2 combined quoted σ (the issue's target)
+TARGET = 0.9
 NAMED = "named (maps, twists, lengths, compliance[1,2], offsets)"
 MODELS = {
     "offsets + lengths": ("link_length", "joint_offset"),
@@ -72,6 +77,7 @@ def agreement(a: rd.PoseFit, b: rd.PoseFit) -> dict:
         "within_2_classic_sigma": _share(diff, classic),
         "median_abs_z": float(np.median(z)),
         "outside_robust": {n: float(v) for n, v in zip(shared, z) if v > 2},
+        "model_error_field": {f.series: f.robust_terms["model_error"] for f in (a, b)},
     }
 
 
@@ -148,8 +154,12 @@ def main() -> None:
                         for k, v in r["against_truth"].items()
                     )
                 )
+    missed = [k for k, r in out["real"].items() if r["within_2_robust_sigma"] < TARGET]
+    out["target"] = {"within_2_robust_sigma": TARGET, "missed": missed}
     with open(a.json, "w") as fh:
         json.dump(out, fh, indent=1)
+    if missed:
+        raise SystemExit(f"real A–B agreement below {100 * TARGET:.0f} % for: {', '.join(missed)}")
 
 
 if __name__ == "__main__":

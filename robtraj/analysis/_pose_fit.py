@@ -23,8 +23,10 @@ from .._blas import serial_blas
 from .._errors import UserError
 from ..estimate import (
     GaussianPrior,
+    ModelErrorField,
     composed,
     covariance,
+    field_covariance,
     identifiability,
     jackknife_covariance,
     no_prior,
@@ -51,7 +53,7 @@ from ..model import (
     ur10,
 )
 from ._pose_cv import Linearisation, RegionSystems, solve_scaled
-from ._pose_normal import group_members, map_index, normal_terms
+from ._pose_normal import group_members, jacobian_rows, map_index, normal_terms
 from ._pose_series import PoseSeries
 from ._quat import rotation_angle
 
@@ -342,13 +344,17 @@ class PoseFit:
     (``wxyz_xyz``); `free`: estimated parameters; `fixed_unidentifiable`: effect
     parameters fixed because they are not identifiable (with the direction they are
     confounded with); `sigma`: 1σ of the estimated parameters (`np.nan` elsewhere), the
-    larger of `sigma_model` (``s²(JᵀWJ + Λ)⁻¹``, the posterior with the prior Λ of the
+    largest of `sigma_model` (``s²(JᵀWJ + Λ)⁻¹``, the posterior with the prior Λ of the
     maps, ``s² = χ²/(n − p_eff)``, p_eff the effective parameter count) and, except on
-    entries under a prior, the delete-one-region jackknife over `REGIONS` regions of
-    joint space (`robtraj.estimate.robust_covariance`), which does not shrink when the
-    residual is model error shared by neighbouring poses (computed when first asked
-    for). A map's knot is determined by the poses near it: leaving out their region
-    leaves it to its prior, which the jackknife would measure instead of the estimate.
+    entries under a prior, two that survive model error (`robust_terms`, computed when
+    first asked for): the delete-one-region jackknife over `REGIONS` regions of joint
+    space (`robtraj.estimate.robust_covariance`), which does not shrink when the residual
+    is model error shared by neighbouring poses, and the covariance under a model-error
+    field over the joint angles (`robtraj.estimate.field_covariance`, one variance per
+    correlation length), which also covers error correlated across the whole workspace,
+    the part that makes two series over different poses disagree. A map's knot is
+    determined by the poses near it: leaving out their region leaves it to its prior,
+    which the jackknife would measure instead of the estimate.
     `chi2` is the weighted residual sum of squares (without the prior's ``cᵀΛc``);
     `map_prior` the maps' (σ_f, ℓ) [rad] where the fit estimates maps.
     """
@@ -372,14 +378,24 @@ class PoseFit:
     map_prior: tuple[float, float] | None = None
     #: entries under a Gaussian prior (the estimated maps' knots)
     prior_entries: np.ndarray | None = dataclasses.field(default=None, repr=False)
-    #: the region jackknife's σ on demand (None: a cross-series prediction, no effects)
-    _robust: Callable[[], np.ndarray] | None = dataclasses.field(default=None, repr=False)
+    #: the robust σ on demand (None: a cross-series prediction, no effects)
+    _robust: Callable[[], dict[str, Any]] | None = dataclasses.field(default=None, repr=False)
+
+    @functools.cached_property
+    def robust_terms(self) -> dict[str, Any]:
+        """``{"jackknife": σ, "field": σ, "model_error": ModelErrorField.as_dict()}``, the
+        σ `(P,)` of the region jackknife and of the model-error field (NaN where not
+        estimated); empty without effects."""
+        if self._robust is None or not np.any(self.free[12:]):
+            return {}
+        return self._robust()
 
     @functools.cached_property
     def sigma(self) -> np.ndarray:
-        if self._robust is None or not np.any(self.free[12:]):
+        terms = self.robust_terms
+        if not terms:
             return self.sigma_model
-        robust = np.fmax(self.sigma_model, self._robust())
+        robust = np.fmax(np.fmax(self.sigma_model, terms["jackknife"]), terms["field"])
         if self.prior_entries is None:
             return robust
         return np.where(self.prior_entries, self.sigma_model, robust)
@@ -849,8 +865,18 @@ def fit_poses(
     sigma = np.where(free, np.sqrt(np.clip(np.diag(cov), 0.0, None)), np.nan)
 
     def robust():
-        cov_r = _region_jackknife(theta, data, free, series, h)
-        return np.where(free, np.sqrt(np.clip(np.diag(cov_r), 0.0, None)), np.nan)
+        def sig(c):
+            return np.where(free, np.sqrt(np.clip(np.diag(c), 0.0, None)), np.nan)
+
+        field = _model_error_field(theta, data, free, series, h)
+        cov_f = np.zeros_like(h)
+        flat = free & ~prior_entries
+        cov_f[np.ix_(flat, flat)] = field.covariance * (chi2 / max(1.0, n_res - p_eff))
+        return {
+            "jackknife": sig(_region_jackknife(theta, data, free, series, h)),
+            "field": sig(cov_f),
+            "model_error": field.as_dict(),
+        }
 
     pred = np.asarray(
         _predict_jit(jnp.asarray(theta), *(data.z0, data.x0, data.joints, data.drift, data.torque))
@@ -949,6 +975,30 @@ def _region_jackknife(theta, data: PoseData, free, series: PoseSeries, h) -> np.
     lin = linearise(theta, data, label)
     prior = data.prior.dense(theta.size) if data.prior.size else None
     return jackknife_covariance(RegionSystems(lin, prior, free).steps(free)[:-1])
+
+
+def _model_error_field(theta, data: PoseData, free, series: PoseSeries, h) -> ModelErrorField:
+    """`robtraj.estimate.field_covariance` of the free parameters without a prior, the
+    model error a field over the six joint angles [rad] whose relative amplitude per pose
+    follows its weights (a pose with a larger tracker std sees the same field smaller in
+    whitened units); `h` the posterior normal matrix."""
+    lin = linearise(theta, data, np.zeros(series.n, int))
+    columns = np.flatnonzero(free)
+    sqrt_w = np.asarray(data.sqrt_w)
+    rows = jacobian_rows(
+        lin.j, sqrt_w, lin.offset, lin.map_index, lin.map_weight, theta.size - N_PARAMS, columns
+    )
+    amplitude = np.exp(np.mean(np.log(sqrt_w / np.median(sqrt_w, 0)), 1))
+    prior = np.zeros(theta.size, bool)
+    prior[np.asarray(data.prior.index)] = True
+    return field_covariance(
+        h[np.ix_(columns, columns)],
+        rows,
+        (lin.r * sqrt_w).T,
+        np.asarray(series.joints),
+        amplitude,
+        flat=~prior[columns],
+    )
 
 
 def cross_predict(

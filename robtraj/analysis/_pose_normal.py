@@ -15,6 +15,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse as sp
 from jaxtyping import Array, Float, Int
 
 from ..model import map_active
@@ -129,4 +130,33 @@ def group_members(label: np.ndarray) -> np.ndarray:
     out = np.full((n_groups, max(len(x) for x in rows)), label.size, np.int32)
     for g, x in enumerate(rows):
         out[g, : len(x)] = x
+    return out
+
+
+def jacobian_rows(
+    j: Float[np.ndarray, "n 6 pd"],
+    sqrt_w: Float[np.ndarray, "n 6"],
+    offset: tuple[int, int],
+    index: Int[np.ndarray, "n joints 2"],
+    weight: Float[np.ndarray, "n joints 2"],
+    n_map: int,
+    columns: np.ndarray,
+) -> list[sp.csr_matrix]:
+    """Per residual component (x, y, z, rx, ry, rz), the whitened Jacobian rows `(N, P)`
+    of every pose as a sparse matrix, restricted to `columns` (indices into θ): the dense
+    columns and, for the maps, each joint's turn column times the hat values at its two
+    active knots (what `normal_terms` accumulates, here kept per pose)."""
+    j, sqrt_w = np.asarray(j, float), np.asarray(sqrt_w, float)
+    n, _, pd = j.shape
+    idx = np.asarray(index).reshape(n, -1) + pd
+    rows = np.repeat(np.arange(n), idx.shape[1])
+    out = []
+    for c in range(6):
+        jc = j[:, c, :] * sqrt_w[:, c : c + 1]
+        full = sp.hstack([sp.csr_matrix(jc), sp.csr_matrix((n, n_map))], format="csr")
+        if n_map:
+            turn = jc[:, offset[0] : offset[1]]
+            val = (turn[:, :, None] * np.asarray(weight)).reshape(n, -1)
+            full = full + sp.csr_matrix((val.ravel(), (rows, idx.ravel())), shape=full.shape)
+        out.append(full[:, columns])
     return out

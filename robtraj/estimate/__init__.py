@@ -6,6 +6,7 @@ Bundle calibration lives in `robtraj.estimate.calibration`.
 """
 
 from ._base_frame import base_frame_poses
+from ._model_error import ModelErrorField, field_covariance
 from ._noise import NoiseModel, estimate_noise
 from ._observation_noise import observation_angles, observation_noise
 from ._poses import (
@@ -48,6 +49,8 @@ from ._weighting import (
 )
 
 __all__ = [
+    "ModelErrorField",
+    "field_covariance",
     "NoiseModel",
     "estimate_noise",
     "observation_angles",

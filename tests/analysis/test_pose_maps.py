@@ -1,8 +1,8 @@
 """Joint angle error maps in the pose-level fit, on synthetic pose series with known
 truth: the simulator's unmodelled periodic joint error recovered by a map within its
 posterior σ, the normal equations with the maps' sparse block against automatic
-differentiation of the pure residual, and the one-step blocked cross-validation
-against a refit."""
+differentiation of the pure residual, the one-step blocked cross-validation against a
+refit, and the quoted σ under a smooth model error no estimated effect models."""
 
 import jax
 import jax.numpy as jnp
@@ -104,15 +104,42 @@ def test_pose_normal_equations_with_maps_are_those_of_the_pure_residual():
     np.testing.assert_allclose(c, rw @ rw + theta @ lam @ theta, rtol=1e-12)
 
 
+def _linearisation_point(n, seed, rng_seed):
+    """A synthetic series of `n` poses, θ's size with the maps, a generator, a random θ
+    near zero and random per-pose weights (position ~1/µm², rotation ~1/(100 µrad)²)."""
+    s = _series(n, seed)
+    p = pf.n_params(True)
+    rng = np.random.default_rng(rng_seed)
+    theta = rng.normal(0, 1e-4, p)
+    w = rng.uniform(0.5, 2.0, (s.n, 6)) * np.array([1e6] * 3 + [1e4] * 3) ** 2
+    return s, p, rng, theta, w
+
+
+def test_the_whitened_jacobian_rows_are_those_of_the_pure_residual():
+    """`jacobian_rows` (per component, sparse, maps' columns from the active knots)
+    against ``jax.jacfwd`` of `_raw_residual`, whitened, on a subset of columns."""
+    from robtraj.analysis._pose_normal import jacobian_rows
+
+    s, p, rng, theta, w = _linearisation_point(40, 2, 6)
+    z0, x0 = s.start
+    d = pf._data(z0, x0, s, w, False, pf.map_prior_of(("joint_map",)))
+    lin = pf.linearise(theta, d, np.zeros(s.n, int))
+    cols = np.flatnonzero(rng.uniform(size=p) < 0.5)
+    rows = jacobian_rows(
+        lin.j, np.sqrt(w), lin.offset, lin.map_index, lin.map_weight, p - pf.N_PARAMS, cols
+    )
+    args = [jnp.asarray(a) for a in (z0, x0, s.joints, s.drift_variable, s.torque, s.measured)]
+    j = np.asarray(jax.jit(jax.jacfwd(pf._raw_residual))(jnp.asarray(theta), *args))
+    want = np.sqrt(w)[..., None] * j[:, :, cols]
+    got = np.stack([r.toarray() for r in rows], 1)
+    np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
+
+
 def test_the_per_region_normal_equations_are_those_of_each_region_alone():
     """`linearise`'s `h_g`, `b_g`, cost per region (one product over each region's own
     poses) against `pose_normal` with the weights of the other regions' poses zero, maps
     included."""
-    s = _series(60, 1)
-    p = pf.n_params(True)
-    rng = np.random.default_rng(7)
-    theta = rng.normal(0, 1e-4, p)
-    w = rng.uniform(0.5, 2.0, (s.n, 6)) * np.array([1e6] * 3 + [1e4] * 3) ** 2
+    s, p, rng, theta, w = _linearisation_point(60, 1, 7)
     z0, x0 = s.start
     label = pf.regions(s)
     assert label.max() >= 2
@@ -177,3 +204,48 @@ def test_one_step_cross_validation_equals_a_refit_without_the_region(estimate):
     p_ref, a_ref = pf.pose_errors(fg.predict(test), test.measured)
     np.testing.assert_allclose(pos[label == g], p_ref, rtol=1e-3, atol=1e-7)
     np.testing.assert_allclose(ang[label == g], a_ref, rtol=1e-3, atol=1e-7)
+
+
+#: smooth encoder errors of the shoulder and the elbow that no estimated effect models
+SMOOTH_HIDDEN = (PeriodicJointError(2, 1, 3e-4, 0.7), PeriodicJointError(3, 2, 2e-4, 0.3))
+
+
+def _coverage(hidden, seeds=range(100, 108)):
+    """Per seed (300 poses each), a fit of the offsets and lengths: whether a model-error
+    field was found, and which effect parameters lie within 2 quoted and 2 Gauss–Newton
+    σ of the truth (zero: the robot is the nominal UR10)."""
+    out = []
+    for seed in seeds:
+        f = pf.fit_poses(
+            _series(300, seed, hidden), estimate=("link_length", "joint_offset"), block_sigma=NOISE
+        )
+        i = np.flatnonzero(f.free[12:]) + 12
+        found = any(k > 0 for k in f.robust_terms["model_error"]["ratios"])
+        v = np.abs(f.theta[i])
+        out.append((found, v <= 2 * f.sigma[i], v <= 2 * f.sigma_model[i], f, i))
+    return out
+
+
+@pytest.mark.slow
+def test_the_model_error_field_of_a_pose_fit_is_absent_where_the_model_is_right():
+    """Noise only: a field is found in at most 1 of 8 fits (1 % false rate per fit: 2 or
+    more has probability 0.3 %; measured 0), and where none is, its σ are the
+    Gauss–Newton σ."""
+    res = _coverage(())
+    assert sum(r[0] for r in res) <= 1
+    for found, _, _, f, i in res:
+        if not found:
+            np.testing.assert_allclose(f.robust_terms["field"][i], f.sigma_model[i], rtol=1e-9)
+
+
+@pytest.mark.slow
+def test_with_a_smooth_unmodelled_joint_error_the_quoted_sigma_cover_the_truth():
+    """Encoder errors of joints 2 and 3 of once and twice per turn, 0.2–0.3 mrad, left
+    out of a fit of the offsets and lengths: over 8 designs the field is found in every
+    fit and the quoted σ cover the truth in ≥ 85 % of the parameters (measured 91 %;
+    95 % expected), the Gauss–Newton σ in < 75 % (measured 61 %)."""
+    res = _coverage(SMOOTH_HIDDEN)
+    assert all(r[0] for r in res)
+    quoted = np.mean([r[1] for r in res])
+    classic = np.mean([r[2] for r in res])
+    assert quoted >= 0.85 and classic < 0.75, (quoted, classic)

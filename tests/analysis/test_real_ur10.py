@@ -532,7 +532,8 @@ def test_series_a_and_b_agree_within_their_robust_sigma(series):
     agree within 2 combined σ (≈ 95 % of parameters where the σ are honest). The
     Gauss–Newton σ assume the residual is noise; here it is mostly model error shared by
     neighbouring poses, and they are too small to cover the A–B difference; the quoted σ
-    (with the joint-space region jackknife) do, in ≥ 90 % of the parameters."""
+    (with the joint-space region jackknife and the model-error field) do, in ≥ 90 % of
+    the parameters (all poses and the richer models: benchmarks/ur10_sigma_agreement.py)."""
     estimate = ("link_length", "joint_offset")
     a, b = (pf.fit_poses(series[k], estimate=estimate) for k in ("A", "B"))
     pa, pb = a.parameters(), b.parameters()
