@@ -868,12 +868,14 @@ def fit_poses(
         def sig(c):
             return np.where(free, np.sqrt(np.clip(np.diag(c), 0.0, None)), np.nan)
 
-        field = _model_error_field(theta, data, free, series, h)
-        cov_f = np.zeros_like(h)
+        # one linearisation for both: the Jacobian does not depend on the regions
+        lin = linearise(theta, data, regions(series))
         flat = free & ~prior_entries
+        field = _model_error_field(lin, data, free, flat, series, h)
+        cov_f = np.zeros_like(h)
         cov_f[np.ix_(flat, flat)] = field.covariance * (chi2 / max(1.0, n_res - p_eff))
         return {
-            "jackknife": sig(_region_jackknife(theta, data, free, series, h)),
+            "jackknife": sig(_region_jackknife(lin, data, free)),
             "field": sig(cov_f),
             "model_error": field.as_dict(),
         }
@@ -964,40 +966,39 @@ def regions(series: PoseSeries, n: int = REGIONS) -> np.ndarray:
 
 
 @serial_blas
-def _region_jackknife(theta, data: PoseData, free, series: PoseSeries, h) -> np.ndarray:
+def _region_jackknife(lin: Linearisation, data: PoseData, free) -> np.ndarray:
     """The delete-one-region jackknife (`robtraj.estimate.jackknife_covariance`, the
-    formula of `robust_covariance`) with the poses grouped into `regions` of joint
-    space, each deletion one Gauss–Newton step from the estimate, the maps' knots
-    eliminated first (`_pose_cv.RegionSystems`); `h` the posterior normal matrix."""
-    label = regions(series)
-    if label.max() < 1:
-        return np.full((theta.size, theta.size), np.nan)
-    lin = linearise(theta, data, label)
-    prior = data.prior.dense(theta.size) if data.prior.size else None
+    formula of `robust_covariance`) with the poses grouped into the `regions` of joint
+    space of `lin`'s labels, each deletion one Gauss–Newton step from the estimate, the
+    maps' knots eliminated first (`_pose_cv.RegionSystems`)."""
+    p = lin.theta.size
+    if lin.label.max() < 1:
+        return np.full((p, p), np.nan)
+    prior = data.prior.dense(p) if data.prior.size else None
     return jackknife_covariance(RegionSystems(lin, prior, free).steps(free)[:-1])
 
 
-def _model_error_field(theta, data: PoseData, free, series: PoseSeries, h) -> ModelErrorField:
-    """`robtraj.estimate.field_covariance` of the free parameters without a prior, the
-    model error a field over the six joint angles [rad] whose relative amplitude per pose
-    follows its weights (a pose with a larger tracker std sees the same field smaller in
-    whitened units); `h` the posterior normal matrix."""
-    lin = linearise(theta, data, np.zeros(series.n, int))
+def _model_error_field(
+    lin: Linearisation, data: PoseData, free, flat, series: PoseSeries, h
+) -> ModelErrorField:
+    """`robtraj.estimate.field_covariance` of the `flat` parameters (free, without a
+    prior), the model error a field over the six joint angles [rad] whose relative
+    amplitude per pose follows its weights (a pose with a larger tracker std sees the same
+    field smaller in whitened units); `lin` the linearisation at the estimate, `h` the
+    posterior normal matrix."""
     columns = np.flatnonzero(free)
     sqrt_w = np.asarray(data.sqrt_w)
     rows = jacobian_rows(
-        lin.j, sqrt_w, lin.offset, lin.map_index, lin.map_weight, theta.size - N_PARAMS, columns
+        lin.j, sqrt_w, lin.offset, lin.map_index, lin.map_weight, lin.theta.size - N_PARAMS, columns
     )
     amplitude = np.exp(np.mean(np.log(sqrt_w / np.median(sqrt_w, 0)), 1))
-    prior = np.zeros(theta.size, bool)
-    prior[np.asarray(data.prior.index)] = True
     return field_covariance(
         h[np.ix_(columns, columns)],
         rows,
         (lin.r * sqrt_w).T,
         np.asarray(series.joints),
         amplitude,
-        flat=~prior[columns],
+        flat=flat[columns],
     )
 
 
