@@ -2,8 +2,9 @@
 
 `Recorder` opens the port, feeds every byte to a protocol decoder (`acquisition.protocols`)
 and hands the decoded frames to a `FrameWriter`, which appends them to the file through
-`robtraj.recording.RecordingAppender` every `write_interval` seconds and flushes, so a
-crash or ``kill -9`` leaves a readable file that lacks at most the last second.
+`robtraj.recording.RecordingAppender` every `write_interval` seconds and flushes (the
+appender closes the file at every flush), so a crash or ``kill -9`` leaves a file that
+any HDF5 reader opens and that lacks at most the last second.
 
 Decisions (see also PROTOCOL.md):
 
@@ -385,7 +386,8 @@ class FrameWriter:
     def abandon(self, close: bool = True) -> None:
         """Stop writing. After a failed write (`close=False`) the HDF5 file is not touched
         again (closing it after a failed flush can crash the HDF5 library): it is kept
-        open in `ABANDONED`; on disk stays what the last successful flush wrote."""
+        open in `ABANDONED`; on disk stays what the last successful flush wrote (and of
+        the failed one what `read_recording` drops, as after a kill)."""
         self._join()
         if self.appender is not None:
             if close:

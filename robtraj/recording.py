@@ -55,12 +55,26 @@ class RobotLog:
 
     Kinematics as a named built-in `model` (e.g. ``"abb_irb2400_16"``) or a standard-DH
     table `dh` `(J, 4)` with rows ``[d, a, alpha, theta_offset]`` [m, m, rad, rad].
+    Optional: `flange`, the flange (tool0) frame in the last DH frame (a `Pose` of
+    shape `()`), and `link_mass` `(J,)` [kg], the mass of each link for gravity torques;
+    where given they replace the built-in model's (a DH table without them: identity
+    flange, 5 kg per link); `payload_mass` [kg] at the flange likewise (default 1 kg).
+
+    A log joined to a tracker stream (`robtraj attach`) has been moved onto the tracker
+    clock: `time` is the controller's clock minus `clock_offset` [s], found from the data
+    with standard error `clock_offset_sigma` [s] (0 where the user gave the offset; None
+    for a log never aligned). The calibration's τ then refines what is left.
     """
 
     time: np.ndarray
     joints: np.ndarray
     model: str | None = None
     dh: np.ndarray | None = None
+    flange: Pose | None = None
+    link_mass: np.ndarray | None = None
+    payload_mass: float | None = None
+    clock_offset: float = 0.0
+    clock_offset_sigma: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -260,8 +274,17 @@ def _write_into(f: h5py.File, rec: Recording) -> None:
         _create(r, "joints", np.asarray(rec.robot.joints, np.float64), time_chunked=True)
         if rec.robot.model is not None:
             r.attrs["model"] = rec.robot.model
+        if rec.robot.payload_mass is not None:
+            r.attrs["payload_mass_kg"] = float(rec.robot.payload_mass)
+        if rec.robot.clock_offset_sigma is not None:
+            r.attrs["clock_offset_s"] = float(rec.robot.clock_offset)
+            r.attrs["clock_offset_sigma_s"] = float(rec.robot.clock_offset_sigma)
         if rec.robot.dh is not None:
             _create(r, "dh", np.asarray(rec.robot.dh, np.float64))
+        if rec.robot.flange is not None:
+            _write_pose(r, "flange", rec.robot.flange)
+        if rec.robot.link_mass is not None:
+            _create(r, "link_mass", np.asarray(rec.robot.link_mass, np.float64))
 
     if rec.program is not None:
         p = f.create_group("program")
@@ -309,7 +332,7 @@ def _write_into(f: h5py.File, rec: Recording) -> None:
 
 _KNOWN_ATTRS = {
     "/": {"schema", "schema_version", "created", "source"},
-    "/robot": {"model"},
+    "/robot": {"model", "payload_mass_kg", "clock_offset_s", "clock_offset_sigma_s"},
     "/truth": {"effects"},
 }
 
@@ -321,38 +344,79 @@ def read_recording(path: str | os.PathLike) -> Recording:
     `schema`, a newer `schema_version`, a missing required dataset, a shape mismatch,
     non-increasing time or a non-unit quaternion; `UserError` if the file is missing
     or not HDF5.
+
+    A recording that a recorder (`RecordingAppender`) was writing when it was killed is
+    read up to its last complete frame (see `_trim_interrupted_flush`).
     """
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: no such file")
+    name = str(path)
     try:
         f = h5py.File(path, "r")
     except OSError as e:
-        try:  # a recorder killed mid-write leaves the SWMR "open for write" flag set
+        try:  # a SWMR writer killed (robtraj's earlier recorders) leaves its flag set
             f = h5py.File(path, "r", swmr=True)
         except OSError:
             raise UserError(f"{path}: not a readable HDF5 file ({e})") from None
-    with f:
-        name = str(path)
-        schema = f.attrs.get("schema")
-        if isinstance(schema, bytes):
-            schema = schema.decode()
-        if schema != SCHEMA:
-            raise RecordingError(f"{name}: attribute /schema is {schema!r}, expected {SCHEMA!r}")
-        version = f.attrs.get("schema_version")
+    try:
+        with f:
+            rec = _read_file(f, name)
+    except OSError:
+        # a recorder killed while flushing: chunks indexed beyond the end-of-file address
+        # in the superblock, which is written last; SWMR reading does not check reads
+        # against that address
         try:
-            version = int(version)
-        except (TypeError, ValueError):
-            raise RecordingError(f"{name}: attribute /schema_version is missing or not an integer")
-        if version > SCHEMA_VERSION:
-            raise RecordingError(
-                f"{name}: /schema_version is {version}, newer than this robtraj reads "
-                f"({SCHEMA_VERSION}); upgrade robtraj"
-            )
-        used: set[str] = set()
-        rec = _read_from(f, name, used)
+            with h5py.File(path, "r", swmr=True) as f:
+                rec = _read_file(f, name)
+        except OSError as e:
+            raise UserError(f"{path}: unreadable HDF5 data ({e})") from None
     _validate(rec, name)
     return rec
+
+
+def _read_file(f: h5py.File, name: str) -> Recording:
+    schema = f.attrs.get("schema")
+    if isinstance(schema, bytes):
+        schema = schema.decode()
+    if schema != SCHEMA:
+        raise RecordingError(f"{name}: attribute /schema is {schema!r}, expected {SCHEMA!r}")
+    version = f.attrs.get("schema_version")
+    try:
+        version = int(version)
+    except (TypeError, ValueError):
+        raise RecordingError(f"{name}: attribute /schema_version is missing or not an integer")
+    if version > SCHEMA_VERSION:
+        raise RecordingError(
+            f"{name}: /schema_version is {version}, newer than this robtraj reads "
+            f"({SCHEMA_VERSION}); upgrade robtraj"
+        )
+    used: set[str] = set()
+    return _trim_interrupted_flush(_read_from(f, name, used))
+
+
+def _trim_interrupted_flush(rec: Recording) -> Recording:
+    """The complete frames of a recorder's file (``source="device"``) killed mid-flush.
+
+    `RecordingAppender` writes its datasets one after the other, /tracker/time last, and
+    a dataset's new extent may reach the disk before its chunks are indexed: then the
+    datasets differ in length, and /tracker/time ends with frames that read as its fill
+    value or the padding of its last chunk, NaN. Those frames, and every dataset's frames
+    beyond the shortest one, are dropped; the frames left are complete in every dataset.
+    Any other file is returned as read (and a NaN time fails validation).
+    """
+    if rec.attrs.get("source") != "device" or np.ndim(rec.time) != 1:
+        return rec
+    keys = ("time", "frame_index", "positions", "status", "temperature")
+    arrays = {k: getattr(rec, k) for k in keys if getattr(rec, k) is not None}
+    if any(np.ndim(a) < 1 for a in arrays.values()):
+        return rec
+    n = min(a.shape[0] for a in arrays.values())
+    timed = np.flatnonzero(~np.isnan(rec.time[:n]))
+    n = int(timed[-1]) + 1 if timed.size else 0
+    if all(a.shape[0] == n for a in arrays.values()):
+        return rec
+    return rec.replace(**{k: a[:n] for k, a in arrays.items()})
 
 
 def _get(f: h5py.File, key: str, name: str, used: set[str], *, required: bool = True) -> Any:
@@ -393,7 +457,20 @@ def _read_from(f: h5py.File, name: str, used: set[str]) -> Recording:
             time=g("/robot/time"),
             joints=g("/robot/joints"),
             model=_attr_str(f["robot"], "model"),
+            payload_mass=(
+                float(f["robot"].attrs["payload_mass_kg"])
+                if "payload_mass_kg" in f["robot"].attrs
+                else None
+            ),
+            clock_offset=float(f["robot"].attrs.get("clock_offset_s", 0.0)),
+            clock_offset_sigma=(
+                float(f["robot"].attrs["clock_offset_sigma_s"])
+                if "clock_offset_sigma_s" in f["robot"].attrs
+                else None
+            ),
             dh=g("/robot/dh", False),
+            flange=_get_pose(f, "/robot/flange", name, used, required=False),
+            link_mass=g("/robot/link_mass", False),
         )
     program = None
     if "program" in f:
@@ -460,6 +537,7 @@ def _read_from(f: h5py.File, name: str, used: set[str]) -> Recording:
 _SCHEMA_GROUPS = {
     "/tracker",
     "/robot",
+    "/robot/flange",
     "/program",
     "/program/targets",
     "/tool",
@@ -549,8 +627,16 @@ def _validate(rec: Recording, name: str) -> None:
         _check_shape(name, "/robot/joints", rec.robot.joints, (k, None))
         if k:
             _check_increasing(name, "/robot/time", rec.robot.time)
+        j = rec.robot.joints.shape[1]
         if rec.robot.dh is not None:
-            _check_shape(name, "/robot/dh", rec.robot.dh, (rec.robot.joints.shape[1], 4))
+            _check_shape(name, "/robot/dh", rec.robot.dh, (j, 4))
+        if rec.robot.flange is not None:
+            _check_pose(name, "/robot/flange", rec.robot.flange, ())
+        if rec.robot.link_mass is not None:
+            _check_shape(name, "/robot/link_mass", rec.robot.link_mass, (j,))
+            mass = np.asarray(rec.robot.link_mass, np.float64)
+            if not np.all(np.isfinite(mass) & (mass >= 0)):
+                raise RecordingError(f"{name}: /robot/link_mass must be finite and >= 0 [kg]")
     if rec.program is not None:
         p = np.shape(rec.program.targets.position)[0]
         _check_pose(name, "/program/targets", rec.program.targets, (p,))
@@ -608,12 +694,55 @@ def _shuffle_deflate(chunk: np.ndarray) -> bytes:
     return z.compress(planes) + z.flush()
 
 
-class RecordingAppender:
-    """Write a schema-1 recording frame by frame, as a recorder does.
+# The tracker datasets in the order every flush writes them. /tracker/time goes last: a
+# frame whose time is on disk has every other dataset's data on disk (see RecordingAppender).
+_APPEND_ORDER = ("positions", "status", "temperature", "frame_index", "time")
+# Superblock version 2 (no "open for write" flag, unlike the version 3 of SWMR files), v1
+# B-tree chunk indexes, and a file-space strategy (which needs the v110 bound) that never
+# reuses freed space: a rewritten chunk never lands on bytes the last commit points to.
+_APPEND_LIBVER = ("earliest", "v110")
 
-    The tracker datasets are chunked along time and resizable; `flush()` makes what was
-    appended so far durable. The file is opened in SWMR mode (HDF5 ``libver="latest"``)
-    so that a crash or ``kill -9`` leaves a file readable up to the last flush.
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class RecordingAppender:
+    """Write a schema-1 recording frame by frame, as a recorder does, so that a crash at
+    any moment leaves a file that any HDF5 reader opens.
+
+    The tracker datasets are chunked along time and resizable. `append()` opens the file
+    (if it is not open) and writes the frames; `flush()` closes it and syncs it to disk,
+    which commits them. Between flushes the file is closed, so what ``kill -9`` or a power
+    cut leaves there is a complete HDF5 file: plain ``h5py.File(path, "r")`` opens it.
+    The file is never in SWMR mode, whose "open for write" flag a killed writer leaves set.
+
+    While a flush is under way (milliseconds) the writes are ordered so that a kill
+    leaves the previous commit readable by `read_recording`:
+
+    - the file is created complete (empty datasets) under a temporary name and renamed;
+    - no byte the last commit points to is overwritten: a chunk rewritten with another
+      size goes to new space at the end of the file (file-space strategy "none": freed
+      space is never reused; and the (at least three) datasets are written in a fixed
+      order, so the old copy of a rewritten chunk is never the last block of the file,
+      which HDF5 would give back and reuse at once);
+    - the datasets are written and flushed one after the other, /tracker/time last.
+      A dataset's extent can reach the disk before its chunk index; the frames it then
+      claims read as the fill value, or the padding of the last chunk: NaN for
+      /tracker/time. `read_recording` drops such trailing frames of a ``source="device"``
+      file, and those of datasets longer than the shortest one; a frame with a time is
+      then complete in every dataset;
+    - the superblock's end-of-file address is written last: until it is, the new chunks
+      lie beyond it and plain reads of them fail; `read_recording` then reads in SWMR
+      mode, which does not check reads against that address.
+
+    Not covered: a flush that splits a node of a chunk index (a v1 B-tree; one flush in 32
+    to 64 chunks, 32 to 64 s at 1000 Hz) writes the parent node before the new one, and a
+    kill in the microseconds between those two writes leaves that index broken.
 
     **Arguments:**
 
@@ -621,14 +750,15 @@ class RecordingAppender:
     - `led_ids`: `(M,)` LED identifiers (the LED axis of `/tracker/positions`).
     - `attrs`: extra root attributes (``source`` defaults to ``"device"``).
     - `with_status`, `with_temperature`: create the optional tracker datasets.
-    - `compression`: of positions and status: ``"gzip"`` (level 1 after the shuffle
+    - `compression`: of the tracker datasets: ``"gzip"`` (level 1 after the shuffle
       filter, default), ``"lzf"`` or None (a recorder may trade file size for CPU).
 
     With gzip the appender shuffles and deflates whole chunks itself (`_shuffle_deflate`:
     ISA-L, or zlib without the `isal` package) in a small thread pool, beside the thread
     that reads the device, and stores them with `write_direct_chunk`: the file is an
-    ordinary shuffle+gzip dataset that any HDF5 reader decompresses. The last, incomplete chunk is
-    stored padded and rewritten when later frames fill it.
+    ordinary shuffle+gzip dataset that any HDF5 reader decompresses. The last, incomplete
+    chunk is stored padded and rewritten when later frames fill it. Rewritten chunks leave
+    their old copies unused in the file (as SWMR writing did); ``h5repack`` compacts it.
     """
 
     def __init__(
@@ -643,6 +773,8 @@ class RecordingAppender:
         compression: str | None = "gzip",
     ) -> None:
         self.path = Path(path)
+        if compression not in ("gzip", "lzf", None):
+            raise ValueError(f"compression must be 'gzip', 'lzf' or None, not {compression!r}")
         comp: dict[str, Any] = {"compression": compression}
         if compression == "gzip":
             comp.update(compression_opts=1, shuffle=True)
@@ -652,8 +784,19 @@ class RecordingAppender:
             raise UserError(f"{self.path} exists; refusing to overwrite it (use --force)")
         self.led_ids = np.asarray(led_ids, np.int32)
         m = self.led_ids.shape[0]
-        self._f = h5py.File(self.path, "w", libver="latest")
-        f = self._f
+        c = _TRACKER_CHUNK_FRAMES
+        layout = {
+            "positions": ((m, 3), np.dtype("f8")),
+            "status": ((m,), np.dtype("u1")),
+            "temperature": ((), np.dtype("f4")),
+            "frame_index": ((), np.dtype("u8")),
+            "time": ((), np.dtype("f8")),
+        }
+        optional = {"status": with_status, "temperature": with_temperature}
+        self._keys = tuple(k for k in _APPEND_ORDER if optional.get(k, True))
+        self._dtype = {k: layout[k][1] for k in self._keys}
+        # the fill value of the datasets and the padding of their last chunk
+        self._pad = {k: np.nan if k == "time" else 0 for k in self._keys}
         root = {
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "source": "device",
@@ -661,42 +804,41 @@ class RecordingAppender:
             "schema": SCHEMA,
             "schema_version": SCHEMA_VERSION,
         }
-        for k, v in root.items():
-            f.attrs[k] = v
-        t = f.create_group("tracker")
-        c = _TRACKER_CHUNK_FRAMES
-        t.create_dataset("led_ids", data=self.led_ids)
-        self._ds = {
-            "time": t.create_dataset("time", (0,), "f8", maxshape=(None,), chunks=(c,)),
-            "frame_index": t.create_dataset(
-                "frame_index", (0,), "u8", maxshape=(None,), chunks=(c,)
-            ),
-            "positions": t.create_dataset(
-                "positions",
-                (0, m, 3),
-                "f8",
-                maxshape=(None, m, 3),
-                chunks=(c, m, 3),
-                **comp,
-            ),
-        }
-        if with_status:
-            self._ds["status"] = t.create_dataset(
-                "status", (0, m), "u1", maxshape=(None, m), chunks=(c, m), **comp
-            )
-        if with_temperature:
-            self._ds["temperature"] = t.create_dataset(
-                "temperature", (0,), "f4", maxshape=(None,), chunks=(c,)
-            )
-        f.swmr_mode = True
+        tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
+        try:
+            with h5py.File(tmp, "w", libver=_APPEND_LIBVER, fs_strategy="none") as f:
+                for k, v in root.items():
+                    f.attrs[k] = v
+                t = f.create_group("tracker")
+                t.create_dataset("led_ids", data=self.led_ids)
+                for key in self._keys:
+                    shape, dtype = layout[key]
+                    ds = t.create_dataset(
+                        key,
+                        (0, *shape),
+                        dtype,
+                        maxshape=(None, *shape),
+                        chunks=(c, *shape),
+                        fillvalue=self._pad[key],
+                        **comp,
+                    )
+                    # create the chunk index now (one chunk written and pruned): created by
+                    # the first flush, the dataset's header could reach the disk before it
+                    ds.resize(1, axis=0)
+                    ds[0] = self._pad[key]
+                    ds.flush()
+                    ds.resize(0, axis=0)
+            os.replace(tmp, self.path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        self._f: h5py.File | None = None
         self.n_frames = 0
-        # gzip datasets compressed here: the frames of their last, incomplete chunk
-        self._direct = ("positions", "status") if compression == "gzip" else ()
-        self._tail = {
-            key: np.zeros((c, *self._ds[key].shape[1:]), self._ds[key].dtype)
-            for key in self._direct
-            if key in self._ds
-        }
+        # gzip: every dataset compressed here; the frames of its last, incomplete chunk
+        self._tail = (
+            {k: np.full((c, *layout[k][0]), self._pad[k], self._dtype[k]) for k in self._keys}
+            if compression == "gzip"
+            else {}
+        )
         self._pool = (
             ThreadPoolExecutor(min(4, os.cpu_count() or 1), "deflate") if self._tail else None
         )
@@ -715,53 +857,72 @@ class RecordingAppender:
             return
         n0, n1 = self.n_frames, self.n_frames + k
         values = {"time": time, "frame_index": frame_index, "positions": positions}
-        if "status" in self._ds:
+        if "status" in self._keys:
             values["status"] = (
                 status if status is not None else np.where(np.isnan(positions[..., 0]), 1, 0)
             )
-        if "temperature" in self._ds:
+        if "temperature" in self._keys:
             values["temperature"] = (
                 temperature if temperature is not None else np.full(k, np.nan, np.float32)
             )
-        for key, ds in self._ds.items():
+        values = {
+            key: np.asarray(values[key]).astype(self._dtype[key], copy=False) for key in self._keys
+        }
+        chunks = self._compress(values, n0, n1) if self._tail else {}
+        if self._f is None:
+            self._f = self._open()
+        datasets = [self._f["tracker"][key] for key in self._keys]
+        for key, ds in zip(self._keys, datasets, strict=True):
             ds.resize(n1, axis=0)
-            if key not in self._tail:
+            if key in chunks:  # stored now, indexed in the metadata cache
+                for offset, blob in chunks[key]:
+                    ds.id.write_direct_chunk(offset, blob)
+            else:  # into the chunk cache
                 ds[n0:n1] = values[key]
-        if self._tail:
-            self._write_chunks({k: np.asarray(values[k]) for k in self._tail}, n0, n1)
+        for ds in datasets:  # chunks and index one dataset after the other, /tracker/time last
+            ds.flush()
         self.n_frames = n1
 
-    def _write_chunks(self, values: dict[str, np.ndarray], n0: int, n1: int) -> None:
-        """Store frames `n0:n1` of the gzip datasets as shuffled, deflated whole chunks."""
+    def _open(self) -> h5py.File:
+        # no file locking: a reader holding the file open must not stop the recording
+        return h5py.File(self.path, "r+", locking=False)
+
+    def _compress(
+        self, values: dict[str, np.ndarray], n0: int, n1: int
+    ) -> dict[str, list[tuple[tuple[int, ...], bytes]]]:
+        """Frames `n0:n1` as shuffled, deflated whole chunks: (chunk offset, blob) per dataset."""
         c = _TRACKER_CHUNK_FRAMES
-        jobs = []  # (dataset, chunk offset, uncompressed chunk)
-        for key, v in values.items():
-            ds, tail = self._ds[key], self._tail[key]
-            v = v.astype(ds.dtype, copy=False)
+        jobs = []  # (dataset name, chunk offset, uncompressed chunk)
+        for key in self._keys:
+            v, tail = values[key], self._tail[key]
             for start in range(n0 - n0 % c, n1, c):
                 lo, hi = max(start, n0), min(start + c, n1)
                 if hi - start < c or lo > start:  # the incomplete chunk lives in `tail`
                     if lo == start:
-                        tail[:] = 0
+                        tail[:] = self._pad[key]
                     tail[lo - start : hi - start] = v[lo - n0 : hi - n0]
                     chunk = tail.copy()
                 else:
                     chunk = v[lo - n0 : hi - n0]
-                offset = (start,) + (0,) * (ds.ndim - 1)
-                jobs.append((ds, offset, chunk))
+                jobs.append((key, (start,) + (0,) * (v.ndim - 1), chunk))
         blobs = self._pool.map(_shuffle_deflate, [chunk for _, _, chunk in jobs])
-        for (ds, offset, _), blob in zip(jobs, blobs, strict=True):
-            ds.id.write_direct_chunk(offset, blob)
+        out: dict[str, list[tuple[tuple[int, ...], bytes]]] = {key: [] for key in self._keys}
+        for (key, offset, _), blob in zip(jobs, blobs, strict=True):
+            out[key].append((offset, blob))
+        return out
 
     def flush(self) -> None:
-        self._f.flush()
+        """Commit what was appended: close the file (superblock last) and sync it to disk."""
+        if self._f is None:
+            return
+        self._f.close()
+        self._f = None
+        _fsync(self.path)
 
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown()
-        if self._f.id.valid:
-            self._f.flush()
-            self._f.close()
+        self.flush()
 
     def __enter__(self) -> RecordingAppender:
         return self

@@ -186,7 +186,7 @@ class DiscrepancyResult:
         return extra + [
             gap_figure(
                 out / "discrepancy_gap.png",
-                ["nominal", *self.named],
+                [" + ".join(["nominal", *self.included]), *(s.effect for s in self.steps)],
                 self.gaps,
                 self.noise_sigma_m,
                 self.gap_floor_m,
@@ -421,7 +421,7 @@ def _term_inputs(rec: Recording, tau: float, threshold: float):
 
     from ..model import interpolate_joints, motion_sign, robot_from_log
 
-    robot = robot_from_log(rec.robot.model, rec.robot.dh)
+    robot = robot_from_log(rec.robot)
     lt, lj = np.asarray(rec.robot.time, float), np.asarray(rec.robot.joints, float)
     t = np.asarray(rec.time, float) + tau
     q = interpolate_joints(jnp.asarray(lt), jnp.asarray(lj), jnp.asarray(t))
@@ -619,14 +619,15 @@ def discover(
     no worse by more than the floor, replaces it (a last step whose `replaces` lists
     them).
     """
+    from ..estimate import clock_effects
     from ..estimate.calibration import fit, library_space, score_effects
 
     say = progress or (lambda _msg: None)
     if candidates is None:
         n_joints = 6 if rec.robot is None else int(np.shape(rec.robot.joints)[1])
         candidates = (*LIBRARY, *dictionary(n_joints))
+    include = tuple(dict.fromkeys((*clock_effects(rec.robot), *include)))
     candidates = tuple(c for c in candidates if c not in include)
-    include = tuple(dict.fromkeys(include))
     bad = [c for c in (*candidates, *include) if not is_effect(c)]
     if bad:
         raise UserError(

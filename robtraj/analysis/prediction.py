@@ -102,7 +102,7 @@ def _se3(pose) -> jaxlie.SE3:
 def predicted_tool_poses(rec: Recording, calib, time: np.ndarray) -> jaxlie.SE3:
     """camera←tool that `calib` predicts from `rec`'s robot log at tracker times `time` [s]
     (its clock offset, effects and drift variable applied)."""
-    robot = robot_from_log(rec.robot.model, rec.robot.dh)
+    robot = robot_from_log(rec.robot)
     effects = calib.effects_module(rec.robot.joints.shape[1])
     t = np.asarray(time, float) + calib.time_offset
     log_t, joints = np.asarray(rec.robot.time, float), np.asarray(rec.robot.joints, float)

@@ -27,12 +27,14 @@ _COMMANDS = [
     "evaluate",
     "report",
     "import",
+    "attach",
     "emulate",
     "record",
 ]
 #: commands that compile JAX kernels: they use the persistent compilation cache
 _COMPILING = {
     "demo", "poses", "calibrate", "iso9283", "deviation", "discrepancy", "evaluate", "report",
+    "attach",
 }  # fmt: skip
 
 

@@ -78,6 +78,16 @@ def effect_lines(calib, name: str, hidden=None) -> list[str]:
     return lines
 
 
+def attach_campaign(files):
+    """The recording `robtraj attach` makes of a campaign's `files` (`CampaignFiles`)."""
+    from ._attach import attach_files
+
+    return attach_files(
+        files.tracker, robot_log=files.robot_log, mapping=files.mapping, robot=files.robot,
+        tool=files.tool, program=files.program,
+    )  # fmt: skip
+
+
 def run(args: argparse.Namespace) -> int:
     from . import _output
 
@@ -97,24 +107,42 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     from ..estimate.calibration import fit
     from ..recording import write_recording
     from ..report import Section, recording_report, weighting_figure
-    from ..sim import simulate
+    from ..sim import CONTROLLER_EPOCH, simulate, write_campaign
     from ._deviation import deviation_of
     from ._iso9283 import iso_of, print_table
 
     step = _Steps()
     hidden = ", ".join(f"{k}={v:g}" for k, v in HIDDEN.items())
 
-    # 1. one setup (same seed: same camera placement, tool and robot), two recordings
-    cal_rec = simulate("calibration", seed=args.seed, duration=40.0, rate=RATE, effects=HIDDEN)
-    iso_rec = simulate("iso_cube", seed=args.seed, duration=60.0, rate=RATE, effects=HIDDEN)
-    truth = {"calibration": cal_rec.truth, "iso_cube": iso_rec.truth}
-    cal_rec, iso_rec = cal_rec.replace(truth=None), iso_rec.replace(truth=None)
-    write_recording(cal_rec, out / "calibration.h5", overwrite=True)
-    write_recording(iso_rec, out / "iso_cube.h5", overwrite=True)
+    # 1. one setup (same seed: same camera placement, tool and robot), two recordings,
+    # each split into what a lab has (tracker stream, joint log on the controller's
+    # clock, URDF, tool, program) and joined again as `robtraj attach` does
+    sims = {
+        "calibration": simulate(
+            "calibration", seed=args.seed, duration=40.0, rate=RATE, effects=HIDDEN
+        ),
+        "iso_cube": simulate("iso_cube", seed=args.seed, duration=60.0, rate=RATE, effects=HIDDEN),
+    }
+    truth = {k: r.truth for k, r in sims.items()}
     step(
-        f"simulated calibration.h5 ({cal_rec.n_frames} frames) and iso_cube.h5 "
-        f"({iso_rec.n_frames} frames) at {RATE:g} Hz, 18 LEDs; hidden in the robot: {hidden}"
+        f"simulated a calibration run ({sims['calibration'].n_frames} frames) and an ISO cube "
+        f"test ({sims['iso_cube'].n_frames} frames) at {RATE:g} Hz, 18 LEDs; hidden in the "
+        f"robot: {hidden}"
     )
+    (out / "campaign").mkdir()
+    attached = {}
+    for name, sim in sims.items():
+        files = write_campaign(sim, out / "campaign", name=name)
+        rec, alignment, _ = attach_campaign(files)
+        write_recording(rec, out / f"{name}.h5", overwrite=True)
+        attached[name] = rec
+        step(
+            f"{name}.h5 = campaign/{files.tracker.name} + {files.robot_log.name} + "
+            f"{files.robot.name} + {files.tool.name} + {files.program.name}: robot clock "
+            f"+{alignment.offset - CONTROLLER_EPOCH:.4f} s after the epoch (σ "
+            f"{alignment.sigma * 1e3:.2f} ms; true {files.clock_offset - CONTROLLER_EPOCH:.4f} s)"
+        )
+    cal_rec, iso_rec = attached["calibration"], attached["iso_cube"]
 
     # 2. per-frame poses with LED-quality weighting
     est = estimate_poses(iso_rec, weighting="led_noise")

@@ -23,7 +23,12 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("src", metavar="SRC", help="input file (or folder of pose CSV files)")
     p.add_argument(
-        "-o", "--out", required=True, metavar="REC.h5", help="output file (a folder for a folder)"
+        "-o",
+        "--out",
+        required=True,
+        metavar="REC.h5",
+        help="output file; for a folder SRC a folder, into which one .h5 per CSV series is "
+        "written (a folder holding a single CSV may also be written to one .h5 file)",
     )
     p.add_argument(
         "--format",
@@ -138,15 +143,37 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+# an -o with one of these suffixes names a file, anything else a folder
+_FILE_SUFFIXES = (".h5", ".hdf5")
+
+
 def _run_folder(
     src: Path, out: Path, preset: str | None, mapping: dict[str, Any] | None, args
 ) -> int:
+    """A folder of pose CSV files: one .h5 per series into the folder `out`, or, where
+    the folder holds a single series and `out` names a file, that file."""
     from ..importers import import_pose_folder
 
-    if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: SRC is a folder, so -o must name a folder")
-    _output.check(folders=[out], force=args.force)
+    as_file = out.suffix.lower() in _FILE_SUFFIXES or (out.exists() and not out.is_dir())
+    n_series = sum(1 for _ in src.rglob("*.csv"))  # import_pose_folder imports each
+    if as_file and n_series > 1:
+        raise UserError(
+            f"{src} holds {n_series} pose series (.csv files), written as one .h5 each into "
+            f"a folder: name a folder with -o, not the file {out}"
+        )
+    if as_file:
+        _output.check([out], force=args.force)
+    else:
+        _output.check(folders=[out], force=args.force)
     recs = import_pose_folder(src, preset=preset, mapping=mapping, rate=args.rate)
+    if as_file:
+        if len(recs) != 1:  # the folder changed since it was counted
+            raise UserError(f"{src} holds {len(recs)} pose series: name a folder with -o")
+        (rec,) = recs.values()
+        with _output.new_file(out) as tmp:
+            write_recording(rec, tmp)
+        _say(out, rec)
+        return 0
     names = {name: name.removesuffix(".csv").replace("/", "_") + ".h5" for name in recs}
     with _output.new_folder(out) as tmp:
         for name, rec in recs.items():

@@ -6,6 +6,15 @@ Bundle calibration lives in `robtraj.estimate.calibration`.
 """
 
 from ._base_frame import base_frame_poses
+from ._clock import (
+    ClockAlignment,
+    align_clocks,
+    clock_effects,
+    robot_speeds,
+    stream_speeds,
+    tool_poses,
+    tracker_speeds,
+)
 from ._model_error import ModelErrorField, field_covariance
 from ._noise import NoiseModel, estimate_noise
 from ._observation_noise import observation_angles, observation_noise
@@ -49,6 +58,13 @@ from ._weighting import (
 )
 
 __all__ = [
+    "ClockAlignment",
+    "align_clocks",
+    "clock_effects",
+    "robot_speeds",
+    "stream_speeds",
+    "tool_poses",
+    "tracker_speeds",
     "ModelErrorField",
     "field_covariance",
     "NoiseModel",

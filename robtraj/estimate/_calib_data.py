@@ -108,7 +108,7 @@ def check(
         raise UserError("the recording has no tool description (/tool): nothing to calibrate")
     if rec.robot.time.shape[0] < 2:
         raise UserError("the robot log has fewer than 2 samples")
-    robot = robot_from_log(rec.robot.model, rec.robot.dh)
+    robot = robot_from_log(rec.robot)
     if rec.robot.joints.shape[1] != robot.n_joints:
         raise UserError(
             f"/robot/joints has {rec.robot.joints.shape[1]} joints, the robot model {robot.n_joints}"

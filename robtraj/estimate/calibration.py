@@ -81,6 +81,7 @@ from ._calib_problem import (
     residuals,
 )
 from ._calib_result import CalibrationResult, _pose_of, _se3, _wxyz_xyz
+from ._clock import clock_effects
 from ._compile_ahead import CompileAhead, in_background
 from ._next_poses import next_poses
 from ._noise import NoiseModel
@@ -286,6 +287,7 @@ def fit(
         raise UserError(f"cannot hold {', '.join(bad)} (choose from {', '.join(HOLDABLE)})")
     method = type(solver).__name__ if solver else "Levenberg–Marquardt"
     solver = solver or default_solver()
+    estimate = tuple(dict.fromkeys((*clock_effects(recording.robot), *estimate)))
     st = _setup(
         recording,
         estimate,

@@ -18,7 +18,12 @@ from typing import Any
 
 from .._errors import UserError
 from ..recording import Recording
-from ._common import BUILTIN_CONSTELLATIONS as BUILTIN_CONSTELLATIONS, load_constellation
+from ._attach import Parts as Parts, attach as attach, read_parts as read_parts
+from ._common import (
+    BUILTIN_CONSTELLATIONS as BUILTIN_CONSTELLATIONS,
+    load_constellation,
+    tool_document as tool_document,
+)
 from ._n3d import import_n3d as import_n3d, read_n3d as read_n3d
 from ._pose_csv import (
     PRESETS as PRESETS,
@@ -27,11 +32,31 @@ from ._pose_csv import (
     load_mapping as load_mapping,
     load_pose_series as load_pose_series,
 )
+from ._program import program_csv as program_csv, read_program as read_program
+from ._robot_log import (
+    JOINT_LOG_FORMATS as JOINT_LOG_FORMATS,
+    JointLog as JointLog,
+    read_joint_log as read_joint_log,
+)
+from ._robot_model import (
+    RobotDescription as RobotDescription,
+    read_robot_model as read_robot_model,
+    write_robot_model as write_robot_model,
+)
 
 __all__ = [
+    "Parts",
+    "attach",
+    "read_parts",
+    "program_csv",
+    "read_program",
+    "tool_document",
     "BUILTIN_CONSTELLATIONS",
     "PRESETS",
+    "RobotDescription",
     "FORMATS",
+    "JOINT_LOG_FORMATS",
+    "JointLog",
     "guess_format",
     "import_file",
     "import_n3d",
@@ -40,7 +65,10 @@ __all__ = [
     "load_constellation",
     "load_mapping",
     "load_pose_series",
+    "read_joint_log",
     "read_n3d",
+    "read_robot_model",
+    "write_robot_model",
 ]
 
 FORMATS = ("n3d", "pose-csv", "natnet")

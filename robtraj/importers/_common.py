@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -11,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import UserError
-from ..recording import Tool
+from ..recording import Pose, Tool
 
 # NDI Optotrak 6-marker probe of the kineticstoolkit recordings (README of
 # data/optotrak-n3d-probe): tool frame origin at the probe tip, metres, markers 0-5.
@@ -32,15 +33,30 @@ OPTOTRAK_PROBE = Tool(
 
 BUILTIN_CONSTELLATIONS: dict[str, Tool] = {"optotrak-probe": OPTOTRAK_PROBE}
 
+#: Universal Robots' joint names (URDF, RTDE and ROS driver), base to wrist
+UR_JOINTS = (
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
+)
+
 
 def load_constellation(source: str | os.PathLike | Tool) -> Tool:
-    """A tool constellation from a built-in name, a JSON file or a CSV file.
+    """A tool (LED constellation) from a built-in name, a JSON file or a CSV file.
 
     JSON: ``{"led_ids": [..], "positions": [[x, y, z], ..], "unit": "m"|"mm",
-    "reference_leds": [a, b, c]}`` (``unit`` defaults to ``"m"``, ``reference_leds``
-    is optional); a robtraj ``CALIB.json`` (its ``"constellation"`` member) works too.
-    CSV: one row per LED ``id, x, y, z`` in metres, an optional header row; a header
-    naming ``mm`` (e.g. ``id,x_mm,y_mm,z_mm``) means millimetres.
+    "reference_leds": [a, b, c], "normals": [[nx, ny, nz], ..],
+    "flange_from_tool": {"position": [x, y, z], "quaternion_wxyz": [w, x, y, z]}}``, all
+    in the tool frame (``unit`` defaults to ``"m"`` and also scales the flange←tool
+    position; ``reference_leds``, ``normals`` (LED emission axes, normalised on
+    reading) and ``flange_from_tool`` (the nominal TCP) are optional); a robtraj
+    ``CALIB.json`` (its ``"constellation"`` member) works too.
+    CSV: one row per LED ``id, x, y, z`` in metres, optionally ``, nx, ny, nz``, an
+    optional header row; a header naming ``mm`` (e.g. ``id,x_mm,y_mm,z_mm``) means
+    millimetres.
     """
     if isinstance(source, Tool):
         return source
@@ -66,7 +82,57 @@ def _constellation_json(path: Path) -> Tool:
         raise UserError(f"{path}: a constellation needs 'led_ids' and 'positions'")
     scale = _unit_scale(str(doc.get("unit", "m")), path)
     ref = doc.get("reference_leds")
-    return _make_tool(doc["led_ids"], doc["positions"], scale, ref, path)
+    tool = _make_tool(doc["led_ids"], doc["positions"], scale, ref, path)
+    normals = None if doc.get("normals") is None else _normals(doc["normals"], tool, path)
+    fft = None
+    if doc.get("flange_from_tool") is not None:
+        fft = _pose_member(doc["flange_from_tool"], scale, path, "flange_from_tool")
+    return dataclasses.replace(tool, normals=normals, flange_from_tool=fft)
+
+
+def _normals(values, tool: Tool, path: Path) -> np.ndarray:
+    try:
+        n = np.asarray(values, np.float64)
+    except (TypeError, ValueError):
+        raise UserError(f"{path}: normals are not numeric") from None
+    norm = np.linalg.norm(n, axis=-1, keepdims=True) if n.ndim == 2 else None
+    if n.shape != tool.constellation.shape or not np.all(np.isfinite(n)) or np.any(norm == 0):
+        raise UserError(f"{path}: normals must be one finite, non-zero 3-vector per LED")
+    return n / norm
+
+
+def _pose_member(doc, scale: float, path: Path, name: str) -> Pose:
+    try:
+        position = np.asarray(doc["position"], np.float64) * scale
+        q = np.asarray(doc["quaternion_wxyz"], np.float64)
+    except (TypeError, KeyError, ValueError):
+        raise UserError(
+            f"{path}: {name} needs 'position' [x, y, z] and 'quaternion_wxyz'"
+        ) from None
+    if position.shape != (3,) or q.shape != (4,) or not np.all(np.isfinite([*position, *q])):
+        raise UserError(f"{path}: {name} needs 3 finite coordinates and a 4-element quaternion")
+    if abs(np.linalg.norm(q) - 1.0) > 1e-6:
+        raise UserError(f"{path}: {name}.quaternion_wxyz is not a unit quaternion")
+    return Pose(position, q / np.linalg.norm(q))
+
+
+def tool_document(tool: Tool) -> dict:
+    """`tool` as the JSON document `load_constellation` reads (metres)."""
+    doc: dict = {
+        "unit": "m",
+        "led_ids": np.asarray(tool.led_ids).tolist(),
+        "positions": np.asarray(tool.constellation).tolist(),
+    }
+    if tool.reference_leds is not None:
+        doc["reference_leds"] = np.asarray(tool.reference_leds).tolist()
+    if tool.normals is not None:
+        doc["normals"] = np.asarray(tool.normals).tolist()
+    if tool.flange_from_tool is not None:
+        doc["flange_from_tool"] = {
+            "position": np.asarray(tool.flange_from_tool.position).tolist(),
+            "quaternion_wxyz": np.asarray(tool.flange_from_tool.quaternion_wxyz).tolist(),
+        }
+    return doc
 
 
 def _constellation_csv(path: Path) -> Tool:
@@ -81,9 +147,17 @@ def _constellation_csv(path: Path) -> Tool:
     try:
         ids = [int(r[0]) for r in rows]
         pos = [[float(v) for v in r[1:4]] for r in rows]
+        normals = [[float(v) for v in r[4:7]] for r in rows if len(r) >= 7]
     except (ValueError, IndexError):
-        raise UserError(f"{path}: each constellation row must be 'id, x, y, z'") from None
-    return _make_tool(ids, pos, scale, None, path)
+        raise UserError(
+            f"{path}: each constellation row must be 'id, x, y, z' or 'id, x, y, z, nx, ny, nz'"
+        ) from None
+    tool = _make_tool(ids, pos, scale, None, path)
+    if not normals:
+        return tool
+    if len(normals) != len(ids):
+        raise UserError(f"{path}: either every row or none has a normal 'nx, ny, nz'")
+    return dataclasses.replace(tool, normals=_normals(normals, tool, path))
 
 
 def _make_tool(ids, positions, scale: float, ref, path: Path) -> Tool:

@@ -46,16 +46,7 @@ from scipy.spatial.transform import Rotation
 
 from .._errors import UserError
 from ..recording import Pose, Probe, Program, Recording, RecordingError, RobotLog, Tool
-from ._common import quat_wxyz
-
-_UR_JOINTS = [
-    "shoulder_pan_joint",
-    "shoulder_lift_joint",
-    "elbow_joint",
-    "wrist_1_joint",
-    "wrist_2_joint",
-    "wrist_3_joint",
-]
+from ._common import UR_JOINTS, quat_wxyz
 
 # christianlandgraf/ipa-robot-accuracy (UR10 + Leica laser tracker with T-Mac probe).
 # The measured Euler convention (intrinsic XYZ, degrees) is the one the publication's
@@ -92,7 +83,12 @@ PRESETS: dict[str, dict[str, Any]] = {
                 "optional": True,
             },
         ],
-        "joints": {"columns": _UR_JOINTS, "angle_unit": "rad", "model": "ur10", "optional": True},
+        "joints": {
+            "columns": list(UR_JOINTS),
+            "angle_unit": "rad",
+            "model": "ur10",
+            "optional": True,
+        },
         "temperature": {"column": "measurement_temperature", "optional": True},
         "timestamp": {"column": "Timestamp", "format": "%Y%m%d%H%M%S", "optional": True},
         "point_offset_m": 0.1,

@@ -68,6 +68,7 @@ from ._measurement import (
     predict_tool_poses,
 )
 from ._tool import hemispherical_tool
+from ._urdf import dh_link_matrix, urdf_text
 
 __all__ = [
     "BIAS_REFERENCE_ANGLE",
@@ -90,6 +91,7 @@ __all__ = [
     "default_terms",
     "describe",
     "dh_corrections",
+    "dh_link_matrix",
     "dictionary",
     "effect_component_names",
     "effective_joints",
@@ -126,4 +128,5 @@ __all__ = [
     "term",
     "unregister_effect",
     "ur10",
+    "urdf_text",
 ]

@@ -15,6 +15,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._errors import UserError
+from ..recording import RobotLog
 
 _PI = np.pi
 
@@ -80,19 +81,44 @@ def ur10() -> RobotModel:
 BUILTIN_ROBOTS = {"abb_irb2400_16": abb_irb2400_16, "ur10": ur10}
 
 
-def robot_from_log(model: str | None, dh: np.ndarray | None) -> RobotModel:
-    """The robot of a recording: a `/robot/dh` table if present, else the named built-in."""
+def robot_from_log(log: RobotLog) -> RobotModel:
+    """The robot of a recording's robot log (`/robot`).
+
+    A `dh` table gives a custom robot: its `flange` (the flange in the last DH frame,
+    identity if None), `link_mass` (5 kg per link if None) and `payload_mass` (1 kg if
+    None). Otherwise the named built-in `model`, with its flange, link masses and
+    payload replaced by the log's where given.
+    """
+    dh, model, flange, link_mass = log.dh, log.model, log.flange, log.link_mass
     if dh is not None:
         j = np.asarray(dh).shape[0]
-        return _robot("custom", dh, 0.0, np.full(j, 5.0), 1.0)
-    if model is None:
+        robot = _robot(model or "custom", dh, 0.0, np.full(j, 5.0), 1.0)
+    elif model is None:
         raise UserError("the recording names no robot model and has no /robot/dh table")
-    if model not in BUILTIN_ROBOTS:
+    elif model not in BUILTIN_ROBOTS:
         raise UserError(
             f"unknown robot model {model!r} (built in: {', '.join(sorted(BUILTIN_ROBOTS))}); "
             "store a /robot/dh table instead"
         )
-    return BUILTIN_ROBOTS[model]()
+    else:
+        robot = BUILTIN_ROBOTS[model]()
+    if flange is not None:
+        pose = jaxlie.SE3.from_rotation_and_translation(
+            jaxlie.SO3(jnp.asarray(flange.quaternion_wxyz, jnp.float64)).normalize(),
+            jnp.asarray(flange.position, jnp.float64),
+        )
+        robot = eqx.tree_at(lambda r: r.last_from_flange, robot, pose.wxyz_xyz)
+    if link_mass is not None:
+        mass = jnp.asarray(link_mass, jnp.float64)
+        if mass.shape != (robot.n_joints,):
+            raise UserError(
+                f"/robot/link_mass has shape {mass.shape}, the robot has {robot.n_joints} joints"
+            )
+        robot = eqx.tree_at(lambda r: r.link_mass, robot, mass)
+    if log.payload_mass is not None:
+        payload = jnp.asarray(float(log.payload_mass), jnp.float64)
+        robot = eqx.tree_at(lambda r: r.payload_mass, robot, payload)
+    return robot
 
 
 def joint_frames(

@@ -229,7 +229,7 @@ def static_pose_errors(rec, calibration, base_poses) -> tuple[np.ndarray, np.nda
         return None
     q = jnp.asarray(log.joints, jnp.float64)
     cmd = flange_poses(
-        robot_from_log(log.model, log.dh),
+        robot_from_log(log),
         calibration.effects_module(q.shape[1]),
         q,
         jnp.zeros_like(q),

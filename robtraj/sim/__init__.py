@@ -1,5 +1,6 @@
 """The simulator: scenarios, robot motion, effects, visibility and noise → Recording."""
 
+from ._campaign import CONTROLLER_EPOCH, CampaignFiles, write_campaign
 from ._motion import Move, trapezoid_duration, trapezoid_progress
 from ._scenarios import (
     DEFAULT_DURATION,
@@ -15,6 +16,9 @@ from ._simulate import joint_dwells, simulate
 from ._unmodelled import PeriodicJointError, SightLineBias, VelocityDeadbandError
 
 __all__ = [
+    "CONTROLLER_EPOCH",
+    "CampaignFiles",
+    "write_campaign",
     "DEFAULT_DURATION",
     "ISO_CUBE_CENTRE",
     "ISO_CUBE_SIDE",

@@ -64,7 +64,7 @@ def test_positions_equal_model_applied_to_robot_log(noiseless):
     one forward model with the hidden effects (clock offset included)."""
     rec = noiseless
     eff = Effects.from_dict(rec.truth.effects)
-    robot = robot_from_log(rec.robot.model, rec.robot.dh)
+    robot = robot_from_log(rec.robot)
     t_robot = rec.time + float(eff.time_offset)
     q = interpolate_joints(
         jnp.asarray(rec.robot.time), jnp.asarray(rec.robot.joints), jnp.asarray(t_robot)

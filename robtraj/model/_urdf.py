@@ -1,0 +1,78 @@
+"""A robot model as URDF text: the DH chain written as URDF joints, for the cell's tools.
+
+Link ``link_i`` is DH frame i−1 turned by joint i; joint i's origin is the previous DH
+row's transform ``Rz(θ₀)·Tz(d)·Tx(a)·Rx(α)`` (joint 1 at the base), its axis z; the
+fixed joint ``flange`` carries the last row and `last_from_flange` to link ``tool0``.
+Each link's mass sits where the lumped-mass model puts it (the middle of its DH link);
+the payload is the mass of ``tool0``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ._kinematics import RobotModel
+
+
+def dh_link_matrix(row) -> np.ndarray:
+    """`(4, 4)` homogeneous transform ``Rz(θ₀)·Tz(d)·Tx(a)·Rx(α)`` of one DH row
+    ``[d, a, alpha, theta_offset]`` [m, m, rad, rad] (NumPy, joint angle 0)."""
+    d, a, alpha, theta0 = row
+    ct, st, ca, sa = np.cos(theta0), np.sin(theta0), np.cos(alpha), np.sin(alpha)
+    return np.array(
+        [
+            [ct, -st * ca, st * sa, a * ct],
+            [st, ct * ca, -ct * sa, a * st],
+            [0.0, sa, ca, d],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def _origin(t: np.ndarray) -> str:
+    rpy = Rotation.from_matrix(t[:3, :3]).as_euler("xyz")
+    xyz = " ".join(repr(float(v)) for v in t[:3, 3])
+    return f'<origin xyz="{xyz}" rpy="{" ".join(repr(float(v)) for v in rpy)}"/>'
+
+
+def _inertial(mass: float, centre: np.ndarray) -> str:
+    xyz = " ".join(repr(float(v)) for v in centre)
+    return (
+        f'<inertial><origin xyz="{xyz}" rpy="0 0 0"/><mass value="{float(mass)!r}"/>'
+        '<inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial>'
+    )
+
+
+def urdf_text(robot: RobotModel, name: str | None = None) -> str:
+    """URDF of `robot` (base link ``base_link``, flange link ``tool0``), metres and
+    radians; its forward kinematics is `forward_kinematics(robot, q)`."""
+    dh = np.asarray(robot.dh, np.float64)
+    masses = np.asarray(robot.link_mass, np.float64)
+    flange = np.asarray(robot.last_from_flange, np.float64)  # wxyz_xyz
+    last_from_flange = np.eye(4)
+    last_from_flange[:3, :3] = Rotation.from_quat(flange[[1, 2, 3, 0]]).as_matrix()
+    last_from_flange[:3, 3] = flange[4:]
+    lines = ['<?xml version="1.0"?>', f'<robot name="{name or robot.name}">']
+    lines.append('  <link name="base_link"/>')
+    parent = "base_link"
+    for i in range(dh.shape[0]):
+        link = f"link_{i + 1}"
+        centre = 0.5 * dh_link_matrix(dh[i])[:3, 3]
+        lines.append(f'  <link name="{link}">{_inertial(masses[i], centre)}</link>')
+        origin = np.eye(4) if i == 0 else dh_link_matrix(dh[i - 1])
+        lines.append(
+            f'  <joint name="joint_{i + 1}" type="revolute"><parent link="{parent}"/>'
+            f'<child link="{link}"/>{_origin(origin)}<axis xyz="0 0 1"/>'
+            '<limit lower="-6.2832" upper="6.2832" effort="1000" velocity="3"/></joint>'
+        )
+        parent = link
+    tool0 = dh_link_matrix(dh[-1]) @ last_from_flange
+    payload = _inertial(float(robot.payload_mass), np.zeros(3))
+    lines.append(f'  <link name="tool0">{payload}</link>')
+    lines.append(
+        f'  <joint name="flange" type="fixed"><parent link="{parent}"/><child link="tool0"/>'
+        f"{_origin(tool0)}</joint>"
+    )
+    lines.append("</robot>")
+    return "\n".join(lines) + "\n"
