@@ -27,6 +27,7 @@ from .._errors import UserError
 from ..jax_ops import quat_conjugate, quat_multiply, weighted_procrustes
 from ..model import RobotModel, forward_kinematics
 from ..recording import Pose, finite_points
+from ._poses import CHUNK, fit_poses
 
 #: [s] grid of the search over every lag
 COARSE_STEP = 0.02
@@ -95,11 +96,8 @@ def tracker_speeds(
 ) -> _Speeds:
     """Tool speeds from the LED stream: per-frame poses of `constellation` `(M, 3)` [m,
     tool frame] fitted to `positions` `(N, M, 3)` [m, camera frame], unit weights."""
-    seen = finite_points(positions)
-    fit = weighted_procrustes(
-        jnp.asarray(constellation), jnp.asarray(positions), jnp.asarray(seen, jnp.float64)
-    )
-    return _pair_speeds(time, np.asarray(fit.quaternion_wxyz), np.asarray(fit.position), span)
+    fit = fit_poses(constellation, positions, finite_points(positions).astype(np.float64))
+    return _pair_speeds(time, fit.quaternion_wxyz, fit.position, span)
 
 
 def stream_speeds(time: np.ndarray, positions: np.ndarray, span: float = SPEED_SPAN) -> _Speeds:
@@ -108,10 +106,14 @@ def stream_speeds(time: np.ndarray, positions: np.ndarray, span: float = SPEED_S
     linear speed of an unknown tool point has no counterpart on the robot: NaN."""
     time = np.asarray(time, np.float64)
     lag = max(1, int(round(span / max(np.median(np.diff(time)), 1e-9))))
-    a, b = positions[:-lag], positions[lag:]
-    both = finite_points(a) & finite_points(b)
-    fit = weighted_procrustes(jnp.asarray(a), jnp.asarray(b), jnp.asarray(both, jnp.float64))
-    q = np.asarray(fit.quaternion_wxyz)
+    q = []
+    for start in range(0, time.size - lag, CHUNK):  # bounded memory on whole recordings
+        stop = min(start + CHUNK, time.size - lag)
+        a, b = positions[start:stop], positions[start + lag : stop + lag]
+        both = finite_points(a) & finite_points(b)
+        fit = weighted_procrustes(jnp.asarray(a), jnp.asarray(b), jnp.asarray(both, np.float64))
+        q.append(np.asarray(fit.quaternion_wxyz))
+    q = np.concatenate(q)
     angle = 2.0 * np.arctan2(np.linalg.norm(q[:, 1:], axis=1), np.abs(q[:, 0]))
     dt = time[lag:] - time[:-lag]
     return _Speeds(0.5 * (time[lag:] + time[:-lag]), angle / dt, np.full(dt.shape, np.nan))

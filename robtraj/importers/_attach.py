@@ -229,22 +229,26 @@ def program_segments(
     reaching fewer than two targets in order (a fly-by program, another program) gives
     None."""
     p, q = tcp.position, tcp.quaternion_wxyz
-    near = np.linalg.norm(p[:, None, :] - targets.position[None], axis=-1) < REACH  # (K, P)
-    cos_half = np.abs(q @ targets.quaternion_wxyz.T)  # |cos(angle / 2)|
-    near &= cos_half > np.cos(REACH_ANGLE / 2)
     speed = np.linalg.norm(np.gradient(p, robot_time, axis=0), axis=1)
     turn = 2 * np.arccos(np.clip(np.abs(np.sum(q[1:] * q[:-1], axis=1)), 0.0, 1.0))
     rate = turn / np.diff(robot_time)
     turning = np.concatenate([rate[:1], np.maximum(rate[1:], rate[:-1]), rate[-1:]])
     rest = (speed < AT_REST) & (turning < AT_REST_ANGULAR)
-    if not near[:, 0].any():
+
+    def reached(j: int, k: int) -> int | None:
+        """The first sample from `k` on at target j, None if there is none."""
+        near = np.linalg.norm(p[k:] - targets.position[j], axis=1) < REACH
+        near &= np.abs(q[k:] @ targets.quaternion_wxyz[j]) > np.cos(REACH_ANGLE / 2)
+        hits = np.flatnonzero(near)
+        return k + int(hits[0]) if hits.size else None
+
+    k, starts = reached(0, 0), [-np.inf]
+    if k is None:
         return None, 0
-    k, starts = int(np.argmax(near[:, 0])), [-np.inf]
     for j in range(1, targets.position.shape[0]):
-        later = np.flatnonzero(near[k:, j])
-        if later.size == 0:
+        arrive = reached(j, k)
+        if arrive is None:
             break
-        arrive = k + int(later[0])
         resting = np.flatnonzero(rest[k:arrive])
         starts.append(robot_time[k + int(resting[-1]) if resting.size else k])
         k = arrive
