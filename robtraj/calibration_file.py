@@ -172,6 +172,8 @@ def parse_calibration(doc: Any, name: str = "CALIB.json"):
         und = ident.get("undetermined", [])
         if not isinstance(und, list) or not all(isinstance(n, str) for n in und):
             raise UserError("identifiability.undetermined must be a list of parameter names")
+        if doc.get("robot") is not None and not isinstance(doc["robot"], dict):
+            raise UserError("'robot' must be an object (a DH JSON document or {\"model\": name})")
         gauge = doc.get("gauge")
         if isinstance(gauge, dict) and "reference_constellation" in gauge:
             ref = _numbers(gauge["reference_constellation"], None, "gauge.reference_constellation")

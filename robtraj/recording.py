@@ -76,6 +76,25 @@ class RobotLog:
     clock_offset: float = 0.0
     clock_offset_sigma: float | None = None
 
+    def model_document(self) -> dict[str, Any]:
+        """The robot model alone as the DH JSON document of docs/import.md (metres,
+        radians): ``{"model": name}`` for a built-in, else ``{"name", "dh", "flange",
+        "link_mass", "payload_mass"}`` with what is given."""
+        if self.dh is None:
+            return {"model": self.model}
+        doc: dict[str, Any] = {"name": self.model or "custom", "unit": "m", "angle_unit": "rad"}
+        doc["dh"] = np.asarray(self.dh, np.float64).tolist()
+        if self.flange is not None:
+            doc["flange"] = {
+                "position": np.asarray(self.flange.position, np.float64).tolist(),
+                "quaternion_wxyz": np.asarray(self.flange.quaternion_wxyz, np.float64).tolist(),
+            }
+        if self.link_mass is not None:
+            doc["link_mass"] = np.asarray(self.link_mass, np.float64).tolist()
+        if self.payload_mass is not None:
+            doc["payload_mass"] = float(self.payload_mass)
+        return doc
+
 
 @dataclasses.dataclass(frozen=True)
 class Program:

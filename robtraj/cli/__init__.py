@@ -28,6 +28,7 @@ _COMMANDS = [
     "report",
     "import",
     "attach",
+    "export",
     "emulate",
     "record",
 ]

@@ -88,6 +88,8 @@ class CalibrationResult:
     clusters_effective: np.ndarray | None = None
     #: speed [rad/s] below which a joint counted as at rest (the velocity-sign terms)
     motion_threshold: float = MOTION_THRESHOLD
+    #: the robot model calibrated, as `RobotLog.model_document` (empty if not known)
+    robot: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def time_offset(self) -> float:
@@ -174,6 +176,7 @@ class CalibrationResult:
             if self.outlier_frames is None
             else [int(i) for i in self.outlier_frames],
             "unseen_leds": list(self.unseen_leds),
+            "robot": self.robot or None,
         }
 
     @classmethod
@@ -230,6 +233,7 @@ class CalibrationResult:
                 ),
                 n_clusters=int(robust.get("clusters", 0)),
                 motion_threshold=float(d.get("motion_threshold_rad_s", MOTION_THRESHOLD)),
+                robot=dict(d.get("robot") or {}),
                 clusters_effective=(
                     None
                     if robust.get("effective_clusters") is None

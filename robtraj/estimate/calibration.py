@@ -455,6 +455,7 @@ def fit(
     failed = [x for x in sols if not x.converged]
     model = np.flatnonzero(np.r_[st.in_model[:q], np.ones(len(phi_names) - q, bool)])
     return CalibrationResult(
+        robot=recording.robot.model_document(),
         camera_from_base=_pose_of(problem.camera_from_base),
         flange_from_tool=_pose_of(problem.flange_from_tool),
         led_ids=np.asarray(data.led_ids),

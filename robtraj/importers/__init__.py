@@ -41,6 +41,7 @@ from ._robot_log import (
 from ._robot_model import (
     RobotDescription as RobotDescription,
     read_robot_model as read_robot_model,
+    robot_description as robot_description,
     write_robot_model as write_robot_model,
 )
 
@@ -48,6 +49,7 @@ __all__ = [
     "Parts",
     "attach",
     "read_parts",
+    "robot_description",
     "program_csv",
     "read_program",
     "tool_document",

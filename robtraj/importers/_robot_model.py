@@ -13,6 +13,7 @@ import dataclasses
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -153,6 +154,18 @@ def _read_dh_json(path: Path, text: str) -> RobotDescription:
         doc = json.loads(text)
     except json.JSONDecodeError as e:
         raise UserError(f"{path}: not valid JSON ({e})") from None
+    return robot_description(doc, path)
+
+
+def robot_description(doc: Any, path: str | Path = "robot") -> RobotDescription:
+    """The robot of a parsed DH JSON document (or ``{"model": name}`` for a built-in, as a
+    CALIB.json's ``"robot"`` holds it); `path` names it in errors."""
+    if isinstance(doc, dict) and set(doc) == {"model"}:
+        from ..model import BUILTIN_ROBOTS
+
+        if doc["model"] not in BUILTIN_ROBOTS:
+            raise UserError(f"{path}: unknown built-in robot model {doc['model']!r}")
+        return RobotDescription(name=str(doc["model"]), model=str(doc["model"]))
     if not isinstance(doc, dict) or "dh" not in doc:
         raise UserError(f'{path}: a DH robot model is a JSON object with a "dh" table')
     unknown = sorted(set(doc) - _JSON_KEYS)
@@ -195,7 +208,7 @@ def _read_dh_json(path: Path, text: str) -> RobotDescription:
         payload = _numbers([doc["payload_mass"]], path, "payload_mass")[0]
         if not payload >= 0:
             raise UserError(f"{path}: payload_mass must be a mass >= 0 [kg]")
-    name = str(doc.get("name", path.stem))
+    name = str(doc.get("name", Path(path).stem))
     return RobotDescription(name=name, dh=dh, flange=flange, link_mass=mass, payload_mass=payload)
 
 
