@@ -29,13 +29,14 @@ _COMMANDS = [
     "import",
     "attach",
     "export",
+    "compensate",
     "emulate",
     "record",
 ]
 #: commands that compile JAX kernels: they use the persistent compilation cache
 _COMPILING = {
     "demo", "poses", "calibrate", "iso9283", "deviation", "discrepancy", "evaluate", "report",
-    "attach",
+    "attach", "compensate",
 }  # fmt: skip
 
 

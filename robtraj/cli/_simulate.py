@@ -42,6 +42,12 @@ def register(sub) -> argparse.ArgumentParser:
         + ", or a dictionary term (e.g. joint2_harmonic1=SIN,COS, or joint2_map=V: a "
         "constant V, or 256 values, one per knot)",
     )
+    p.add_argument(
+        "--commanded",
+        metavar="PROG",
+        help="send the controller these poses (a program CSV/JSON, e.g. from `robtraj "
+        "compensate`) in place of the scenario's targets, which /program keeps",
+    )
     p.add_argument("--no-truth", action="store_true", help="leave /truth out of the file")
     p.add_argument("--force", action="store_true", help="overwrite OUT.h5 if it exists")
     p.set_defaults(func=run)
@@ -60,6 +66,11 @@ def run(args: argparse.Namespace) -> int:
     if not args.rate > 0:
         raise UserError(f"--rate must be > 0 Hz, got {args.rate}")
     effects = dict(parse_effect(s) for s in args.effect)
+    commanded = None
+    if args.commanded is not None:
+        from ..importers import read_program
+
+        commanded = read_program(args.commanded)[0].targets
     rec = simulate(
         args.scenario,
         seed=args.seed,
@@ -67,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         rate=args.rate,
         effects=effects,
         truth=not args.no_truth,
+        commanded=commanded,
     )
     with _output.new_file(out) as tmp:
         write_recording(rec, tmp)

@@ -168,6 +168,8 @@ def parse_effect(spec: str, n_joints: int = 6) -> tuple[str, np.ndarray]:
         raise UserError(f"bad --effect {spec!r}: VALUE must be a number or comma-separated numbers")
     shape = np.shape(Effects.zeros(n_joints).get(name))
     try:
+        if values.size == int(np.prod(shape)) and values.size > 1:
+            values = values.reshape(shape)  # row-major: per joint, its components
         values = np.broadcast_to(values if values.size > 1 else values[0], shape)
     except ValueError:
         raise UserError(f"bad --effect {spec!r}: {name} takes 1 or {int(np.prod(shape))} values")

@@ -256,11 +256,17 @@ def inverse_kinematics(
     q0: Float[Array, " joints"],
     iterations: int = 60,
     damping: float = 1e-10,
+    forward=None,
 ) -> Float[Array, " joints"]:
-    """Joint vector reaching `base_from_flange` by damped Gauss–Newton from seed `q0`."""
+    """Joint vector reaching `base_from_flange` by damped Gauss–Newton from seed `q0`.
+
+    `forward`: the pose as a function of the joint vector (default: the nominal
+    `forward_kinematics(robot, q)`; e.g. a calibrated model's base←tool, with the target
+    then a tool pose)."""
+    forward = (lambda q: forward_kinematics(robot, q)) if forward is None else forward
 
     def err(q):
-        return (base_from_flange.inverse() @ forward_kinematics(robot, q)).log()
+        return (base_from_flange.inverse() @ forward(q)).log()
 
     def body(q, _):
         e = err(q)

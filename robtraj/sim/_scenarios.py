@@ -175,6 +175,9 @@ def iso_cube_truth(
     as the analysis names them: in order of first appearance in the program), with the
     `commanded` position [m].
 
+    `AP_vector` `(3,)` [m]: mean attained − commanded position of the injected errors
+    (what a robot free of every other error shows as AP; the approach errors of two
+    directions that are not opposite do not cancel);
     `vAP` [m]: distance between the barycentres of the two approach directions
     (approach error × |u₁ − u₂|, plus the drift's share where the directions' cycles
     differ); `dAP` [m]: ||AP late| − |AP early|| over `drift_cycles` (default a third)
@@ -210,6 +213,7 @@ def iso_cube_truth(
             "dAP": dap,
             "overshoot": ring_peak(ISO_CUBE_SETTLE),
             "t_stab": float(t_out + t_enter),
+            "AP_vector": e.mean(0),
         }
     return out
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 from collections.abc import Sequence
 
@@ -96,6 +97,7 @@ def simulate(
     truth: bool = True,
     moves: Sequence[Move] | None = None,
     unmodelled: Sequence = (),
+    commanded: Pose | None = None,
 ) -> Recording:
     """Simulate a tracker recording of `scenario` (seeded, reproducible).
 
@@ -108,7 +110,9 @@ def simulate(
     `joint_dwells`) instead of the scenario's; the truth is that of the same `seed`.
     `unmodelled`: physics outside robtraj's model (`robtraj.sim.PeriodicJointError`,
     `VelocityDeadbandError`, `SightLineBias`), described in the truth's effects under
-    ``"unmodelled"``.
+    ``"unmodelled"``. `commanded` `(P, ·)`: the poses the controller is sent in place of
+    the program's targets (e.g. a compensated program, `robtraj compensate`); the
+    recording's `/program` keeps the targets (what the robot should reach).
     """
     duration = DEFAULT_DURATION.get(scenario, 30.0) if duration is None else float(duration)
     if not (duration > 0 and np.isfinite(duration)):
@@ -139,6 +143,16 @@ def simulate(
 
     # robot: program → joint log on the robot clock
     moves = scenario_moves(scenario, duration, rng) if moves is None else list(moves)
+    targets = np.stack([m.position for m in moves]), np.stack([m.quaternion_wxyz for m in moves])
+    if commanded is not None:
+        if np.shape(commanded.position) != targets[0].shape:
+            raise UserError(
+                f"{np.shape(commanded.position)[0]} commanded poses for {len(moves)} targets"
+            )
+        moves = [
+            dataclasses.replace(m, position=np.asarray(p), quaternion_wxyz=np.asarray(q))
+            for m, p, q in zip(moves, commanded.position, commanded.quaternion_wxyz, strict=True)
+        ]
     n = int(round(duration * rate))
     t_track = np.arange(n) / rate
     tau = float(effects.time_offset)
@@ -186,8 +200,6 @@ def simulate(
     noisy = leds + sigma[..., None] * rng.normal(size=leds.shape)
     positions = np.where(seen[..., None], noisy, np.nan)
 
-    targets = np.stack([m.position for m in moves])
-    quats = np.stack([m.quaternion_wxyz for m in moves])
     rec_truth = None
     if truth:
         rec_truth = Truth(
@@ -209,7 +221,7 @@ def simulate(
         temperature=temperature.astype(np.float32),
         robot=RobotLog(time=log_time, joints=logged, model=robot, dh=None),
         program=Program(
-            targets=Pose(targets, quats),
+            targets=Pose(*targets),
             motion=np.array([m.motion for m in moves]),
             speed=np.array([m.speed for m in moves]),
             segment=segment,
