@@ -21,6 +21,18 @@ SETUP_FLOOR_M = 1e-3
 _SETUP_FRAMES = 2000  # frames compared (evenly spaced), enough for a robust median
 
 
+def calibrated_robot(calib, robot: str | None, calib_name: str):
+    """The robot model `calib` calibrated: `robot` (a built-in name, DH JSON or URDF) if
+    given, else the one CALIB.json names; `UserError` where neither is known."""
+    from ..importers import read_robot_model, robot_description
+
+    if robot is not None:
+        return read_robot_model(robot).robot_model()
+    if not calib.robot:
+        raise UserError(f"{calib_name} does not name its robot (an older CALIB.json); give --robot")
+    return robot_description(calib.robot, f"{calib_name}: robot").robot_model()
+
+
 def add_arguments(p: argparse.ArgumentParser, *, calibration_required: bool = True) -> None:
     p.add_argument("recording", metavar="REC.h5", help="recording with /program")
     p.add_argument(

@@ -81,9 +81,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _inputs(args, calib):
     """(program, labels, robot model, controller's TCP, first joints) from PROGRAM."""
-    from ..importers import load_constellation, read_program, read_robot_model, robot_description
+    from ..importers import load_constellation, read_program
     from ..model import robot_from_log
     from ..recording import read_recording
+    from ._analysis_inputs import calibrated_robot
 
     path = Path(args.program)
     if path.suffix.lower() in (".h5", ".hdf5"):
@@ -108,16 +109,7 @@ def _inputs(args, calib):
             raise UserError(
                 f"--start-joints must be numbers [°], not {args.start_joints!r}"
             ) from None
-        desc = (
-            read_robot_model(args.robot)
-            if args.robot
-            else robot_description(calib.robot, f"{args.calibration}: robot")
-            if calib.robot
-            else None
-        )
-        if desc is None:
-            raise UserError(f"{args.calibration} does not name its robot; give --robot")
-        robot = robot_from_log(desc.robot_log(np.zeros(0), np.zeros((0, desc.n_joints))))
+        robot = calibrated_robot(calib, args.robot, args.calibration)
     if tcp is None:
         raise UserError(f"{path}: the tool has no nominal flange_from_tool (the controller's TCP)")
     if np.shape(q_start) != (robot.n_joints,):
@@ -134,10 +126,8 @@ def _labels(values, program) -> list[str]:
 
 def _same_robot(calib, robot, name) -> None:
     """Refuse a calibration of another robot (its DH table or built-in name differs)."""
-    from ..importers import robot_description
-    from ..model import robot_from_log
+    from ._analysis_inputs import calibrated_robot
 
-    desc = robot_description(calib.robot, f"{name}: robot")
-    other = robot_from_log(desc.robot_log(np.zeros(0), np.zeros((0, desc.n_joints))))
+    other = calibrated_robot(calib, None, name)
     if other.dh.shape != robot.dh.shape or not np.allclose(other.dh, robot.dh, atol=1e-9):
         raise UserError(f"{name} calibrates another robot than the program's ({other.name})")

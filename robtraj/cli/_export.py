@@ -40,8 +40,7 @@ def register(sub) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from ..analysis.export import calibration_urdf, not_representable, parameter_document
     from ..calibration_file import load_calibration
-    from ..importers import read_robot_model, robot_description
-    from ..model import robot_from_log
+    from ._analysis_inputs import calibrated_robot
 
     _output.check([args.out], force=args.force)
     calib = load_calibration(args.calibration)
@@ -49,15 +48,7 @@ def run(args: argparse.Namespace) -> int:
         _output.write_text(args.out, json.dumps(parameter_document(calib), indent=1))
         print(f"wrote {args.out}: {len(calib.parameter_names)} parameters with their σ")
         return 0
-    if args.robot is not None:
-        desc = read_robot_model(args.robot)
-    elif calib.robot:
-        desc = robot_description(calib.robot, f"{args.calibration}: robot")
-    else:
-        raise UserError(
-            f"{args.calibration} does not name its robot (an older CALIB.json); give --robot"
-        )
-    robot = robot_from_log(desc.robot_log(np.zeros(0), np.zeros((0, desc.n_joints))))
+    robot = calibrated_robot(calib, args.robot, args.calibration)
     for name in ("joint_offset", "link_length", "link_twist"):
         value = calib.effects.get(name)
         if value is not None and np.shape(value)[0] != robot.n_joints:

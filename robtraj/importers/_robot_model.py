@@ -56,6 +56,12 @@ class RobotDescription:
 
         return BUILTIN_ROBOTS[self.model]().n_joints
 
+    def robot_model(self):
+        """The `robtraj.model.RobotModel` it describes."""
+        from ..model import robot_from_log
+
+        return robot_from_log(self.robot_log(np.zeros(0), np.zeros((0, self.n_joints))))
+
     def robot_log(self, time: np.ndarray, joints: np.ndarray) -> RobotLog:
         """The `RobotLog` of joint samples `joints` `(K, J)` [rad] at `time` `(K,)` [s]."""
         return RobotLog(

@@ -87,7 +87,7 @@ def _write_ros2_bag(path, time_s: np.ndarray, joints: np.ndarray) -> None:
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("campaign")
-    sim = simulate("calibration", seed=3, duration=24.0, rate=250.0, effects={"time_offset": TAU})
+    sim = simulate("calibration", seed=3, duration=16.0, rate=250.0, effects={"time_offset": TAU})
     write_recording(sim.replace(truth=None), tmp / "original.h5")
     (tmp / "parts").mkdir()
     files = write_campaign(sim, tmp / "parts", clock_offset=SHIFT, log_format="ur-rtde")
