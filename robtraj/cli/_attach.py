@@ -47,6 +47,12 @@ def register(sub) -> argparse.ArgumentParser:
         help="robot model: a built-in name (abb_irb2400_16, ur10), a DH JSON or a URDF",
     )
     p.add_argument("--flange-link", metavar="LINK", help="URDF: the flange link (default tool0)")
+    p.add_argument(
+        "--base-link",
+        metavar="LINK",
+        help="URDF: the base frame of the program's targets (default the root link; "
+        "ur_description: base)",
+    )
     p.add_argument("--tool", metavar="TOOL", help="LED tool: JSON or CSV (docs/campaign.md)")
     p.add_argument("--program", metavar="PROG", help="program targets: CSV or JSON")
     p.add_argument(
@@ -71,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
     rec, alignment, parts = attach_files(
         args.recording, robot_log=args.robot_log, log_format=args.log_format,
         mapping=args.mapping, joint_names=names, topic=args.topic, robot=args.robot,
-        flange_link=args.flange_link, tool=args.tool, program=args.program,
+        flange_link=args.flange_link, base_link=args.base_link, tool=args.tool,
+        program=args.program,
         clock_offset=args.clock_offset,
     )  # fmt: skip
     from ..recording import write_recording

@@ -61,6 +61,7 @@ def read_parts(
     topic: str | None = None,
     robot: str | os.PathLike | None = None,
     flange_link: str | None = None,
+    base_link: str | None = None,
     tool: str | os.PathLike | None = None,
     program: str | os.PathLike | None = None,
     clock_offset: float | None = None,
@@ -69,7 +70,7 @@ def read_parts(
     `load_constellation`, `read_program`); `UserError` (one line) where a file is wrong."""
     parts: dict = {"clock_offset": clock_offset, "sources": {}}
     if robot is not None:
-        parts["robot"] = read_robot_model(robot, flange_link=flange_link)
+        parts["robot"] = read_robot_model(robot, flange_link=flange_link, base_link=base_link)
         parts["sources"]["robot"] = Path(robot).name
     if robot_log is not None:
         fmt = log_format or guess_joint_log_format(robot_log, mapping)

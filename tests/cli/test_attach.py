@@ -105,6 +105,10 @@ def _no_chain_urdf(tmp, files, other):
     return {"robot": path, "flange_link": "tool0"}
 
 
+def _unknown_base_link(tmp, files, other):
+    return {"base_link": "nope"}
+
+
 def _foreign_tool(tmp, files, other):
     doc = json.loads(files.tool.read_text())
     doc["led_ids"] = [i + 100 for i in doc["led_ids"]]
@@ -135,6 +139,7 @@ def _log_of_the_day_before(tmp, files, other):
         (_log_without_time, "time_ms"),
         (_five_joints, "5 joints"),
         (_no_chain_urdf, "no link named 'tool0'"),
+        (_unknown_base_link, "no link named 'nope'"),
         (_foreign_tool, "not in the stream"),
         (_other_run, "does not match the tracker stream"),
         (_log_of_the_day_before, "does the log overlap the stream"),
