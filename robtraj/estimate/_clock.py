@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-from scipy import signal
+from scipy import ndimage, signal
 
 from .._errors import UserError
 from ..jax_ops import quat_conjugate, quat_multiply, weighted_procrustes
@@ -40,6 +40,8 @@ MIN_ACTIVITY = {"angular": 0.02, "linear": 0.005}
 MIN_CORRELATION = 0.8
 #: share of the tracker's moving time the log must cover at an offset
 MIN_OVERLAP = 0.5
+#: [s] grid and Gaussian width on which the speeds are compared near the best offset
+FINE_GRID, SMOOTHING = 1e-3, 0.02
 #: time blocks of the jackknife for the standard error of the offset
 BLOCKS = 8
 
@@ -262,6 +264,34 @@ def _fine(trk: _Speeds, rob: _Speeds, channels, centre: float, half: float, step
     return float(offsets[k] + frac * step)
 
 
+def _smoothed(s: _Speeds, step: float = FINE_GRID, width: float = SMOOTHING) -> _Speeds:
+    """`s` on a uniform grid of `step` [s] (linear interpolation between samples, NaN
+    across gaps of more than twice the median spacing), each channel then smoothed by a
+    Gaussian of standard deviation `width` [s] (normalised where samples are missing).
+    Both clocks' speeds pass the same filter, so the offset is not biased; the noise of
+    single samples and the jitter of their time stamps no longer ripple the correlation
+    as the offset moves across sample times."""
+    grid = np.arange(float(np.nanmin(s.time)), float(np.nanmax(s.time)), step)
+    out = {}
+    for ch in ("angular", "linear"):
+        v = getattr(s, ch)
+        ok = np.isfinite(v) & np.isfinite(s.time)
+        t, v = s.time[ok], v[ok]
+        if t.size < 2:
+            out[ch] = np.full(grid.shape, np.nan)
+            continue
+        k = np.clip(np.searchsorted(t, grid), 1, t.size - 1)
+        near = (t[k] - t[k - 1]) <= 2 * np.median(np.diff(t))
+        have = near & (grid >= t[0]) & (grid <= t[-1])
+        on_grid = np.where(have, np.interp(grid, t, v), 0.0)
+        sd = width / step
+        weight = ndimage.gaussian_filter1d(have.astype(float), sd, mode="constant")
+        total = ndimage.gaussian_filter1d(on_grid, sd, mode="constant")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[ch] = np.where(weight > 0.5, total / weight, np.nan)
+    return _Speeds(grid, out["angular"], out["linear"])
+
+
 def align_clocks(trk: _Speeds, rob: _Speeds, *, fine_step: float = 2.5e-4) -> ClockAlignment:
     """The clock offset (robot − tracker) that makes the robot's tool speeds match the
     tracker's, over every lag; `UserError` when the tool does not move enough or no
@@ -280,6 +310,7 @@ def align_clocks(trk: _Speeds, rob: _Speeds, *, fine_step: float = 2.5e-4) -> Cl
             f"tool's speeds correlate below {MIN_CORRELATION}{where} or the log covers "
             f"less than {MIN_OVERLAP:.0%} of the stream; is it the log of this run?"
         )
+    trk, rob = _smoothed(trk), _smoothed(rob)
     best = _fine(trk, rob, channels, offset, 2 * COARSE_STEP, fine_step)
     if best is None:
         raise UserError("the clock offset has no clear optimum near the coarse estimate")

@@ -32,13 +32,16 @@ def test_lagged_correlation_matches_numpy_corrcoef_at_every_lag():
         np.testing.assert_allclose(got, np.corrcoef(a[both], b[both])[0, 1], rtol=1e-9)
 
 
-def _case(scenario: str, seed: int, with_tool: bool = True):
+def _case(scenario: str, seed: int, with_tool: bool = True, real_log: bool = False):
     rng = np.random.default_rng(100 + seed)
     tau = rng.uniform(-0.01, 0.01)
     rec = simulate(scenario, seed=seed, duration=24.0, rate=250.0, effects={"time_offset": tau})
     offset = CONTROLLER_EPOCH + rng.uniform(-30.0, 30.0)
     # the controller logs at 125 Hz on its own clock: robot = tracker + τ + offset
     log_time, joints = rec.robot.time[::2] + offset, rec.robot.joints[::2]
+    if real_log:  # encoder noise, and time stamps ±1 ms off the instants sampled
+        joints = joints + rng.normal(scale=2e-5, size=joints.shape)
+        log_time = np.sort(log_time + rng.uniform(-1e-3, 1e-3, size=log_time.shape))
     if with_tool:
         trk = tracker_speeds(rec.time, rec.positions, rec.tool.constellation)
         fft = rec.tool.flange_from_tool
@@ -50,7 +53,7 @@ def _case(scenario: str, seed: int, with_tool: bool = True):
 
 def _check(cases):
     """Every offset within the target, and no error beyond 4 of its quoted σ (σ found
-    conservative: the RMS of error/σ is 0.42 over 16 simulated runs; a σ that were right
+    conservative: the RMS of error/σ is 0.59 over 16 simulated runs; a σ that were right
     would exceed 4 in 6e-5 of cases)."""
     for found, truth in cases:
         err = found.offset - truth
@@ -68,6 +71,12 @@ def test_offset_within_2_ms_of_the_truth(scenario):
 @pytest.mark.parametrize("scenario", ["calibration", "iso_cube"])
 def test_offset_within_2_ms_of_the_truth_on_8_seeds(scenario):
     _check([_case(scenario, seed) for seed in range(8)])
+
+
+def test_a_log_with_encoder_noise_and_time_stamp_jitter():
+    """Noise and jittered stamps of single samples must not pull the offset to a sample
+    instant (the speeds are compared smoothed, on a common grid)."""
+    _check([_case("calibration", 5, real_log=True), _case("iso_cube", 5, real_log=True)])
 
 
 def test_without_the_tool_the_angular_speed_alone_aligns():
