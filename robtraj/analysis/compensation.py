@@ -19,7 +19,7 @@ import jaxlie
 import numpy as np
 
 from .._errors import UserError
-from ..model import RobotModel, flange_poses, forward_kinematics, inverse_kinematics
+from ..model import RobotModel, flange_poses, forward_kinematics, inverse_kinematics, pose_se3
 from ..recording import Pose, Program
 
 #: [m], [rad]: the calibrated model's TCP must reach each target this closely
@@ -45,14 +45,6 @@ class Compensation:
     error_after_rad: np.ndarray
 
 
-def _se3(pose: Pose) -> jaxlie.SE3:
-    return jaxlie.SE3(
-        jnp.concatenate(
-            [jnp.asarray(pose.quaternion_wxyz, jnp.float64), jnp.asarray(pose.position)], -1
-        )
-    )
-
-
 def compensate(
     program: Program,
     robot: RobotModel,
@@ -73,11 +65,11 @@ def compensate(
     within `TOLERANCE` (out of reach)."""
     if tcp not in ("nominal", "calibrated"):
         raise UserError(f"tcp must be 'nominal' or 'calibrated', not {tcp!r}")
-    targets = _se3(program.targets)
-    nominal = _nominal_solutions(robot, targets, _se3(nominal_flange_from_tool), q_start)
+    targets = pose_se3(program.targets)
+    nominal = _nominal_solutions(robot, targets, pose_se3(nominal_flange_from_tool), q_start)
     direction = _approach_direction(nominal)
     effects = calib.effects_module(robot.n_joints)
-    tool = _se3(calib.flange_from_tool if tcp == "calibrated" else nominal_flange_from_tool)
+    tool = pose_se3(calib.flange_from_tool if tcp == "calibrated" else nominal_flange_from_tool)
     joints, before, after = _calibrated_solutions(
         robot, effects, tool, targets, jnp.asarray(nominal), jnp.asarray(direction)
     )
@@ -95,7 +87,7 @@ def compensate(
             f"{TOLERANCE[0] * 1e6:g} µm: out of reach"
         )
     commands = jax.vmap(
-        lambda q: (forward_kinematics(robot, q) @ _se3(nominal_flange_from_tool)).wxyz_xyz
+        lambda q: (forward_kinematics(robot, q) @ pose_se3(nominal_flange_from_tool)).wxyz_xyz
     )(joints)
     commands = np.asarray(commands)
     return Compensation(

@@ -13,11 +13,9 @@ from __future__ import annotations
 from typing import Any
 
 import equinox as eqx
-import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
-from ..model import RobotModel, dh_corrections, effect_component_names, urdf_text
+from ..model import RobotModel, dh_corrections, effect_component_names, pose_se3, urdf_text
 
 #: the effects a URDF's joint origins carry
 GEOMETRIC = ("joint_offset", "link_length", "link_twist")
@@ -50,10 +48,7 @@ def calibration_urdf(calib, robot: RobotModel) -> str:
     """URDF text of the calibrated robot (links ``base_link`` … ``tool0``, and ``tool``
     at the calibrated flange←tool)."""
     geometry, tilt = calibrated_geometry(calib, robot)
-    fft = calib.flange_from_tool
-    tool = jaxlie.SE3(
-        jnp.concatenate([jnp.asarray(fft.quaternion_wxyz), jnp.asarray(fft.position)])
-    ).as_matrix()
+    tool = pose_se3(calib.flange_from_tool).as_matrix()
     missing = not_representable(calib)
     notes = (
         f"robtraj calibration of {robot.name}: joint offsets, link lengths and twists in the "

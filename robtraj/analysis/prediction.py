@@ -33,6 +33,7 @@ from ..model import (
     interpolate_joints,
     motion_direction,
     motion_sign,
+    pose_se3,
     predict_tool_poses,
     robot_from_log,
 )
@@ -93,12 +94,6 @@ class Prediction:
         }
 
 
-def _se3(pose) -> jaxlie.SE3:
-    return jaxlie.SE3(
-        jnp.concatenate([jnp.asarray(pose.quaternion_wxyz), jnp.asarray(pose.position)])
-    )
-
-
 def predicted_tool_poses(rec: Recording, calib, time: np.ndarray) -> jaxlie.SE3:
     """camera←tool that `calib` predicts from `rec`'s robot log at tracker times `time` [s]
     (its clock offset, effects and drift variable applied)."""
@@ -116,8 +111,8 @@ def predicted_tool_poses(rec: Recording, calib, time: np.ndarray) -> jaxlie.SE3:
     return predict_tool_poses(
         robot,
         effects,
-        _se3(calib.camera_from_base),
-        _se3(calib.flange_from_tool),
+        pose_se3(calib.camera_from_base),
+        pose_se3(calib.flange_from_tool),
         q,
         jnp.asarray(direction),
         jnp.asarray(np.nan_to_num(drift)),
@@ -192,7 +187,7 @@ def predict(
     delta = meas.inverse() @ pred
     pos = np.linalg.norm(np.asarray(pred.translation()) - measured[:, 4:], axis=-1)
     ang = np.linalg.norm(np.asarray(delta.rotation().log()), axis=-1)
-    tool_in_base = np.asarray(_se3(calib.camera_from_base).inverse().apply(meas.translation()))
+    tool_in_base = np.asarray(pose_se3(calib.camera_from_base).inverse().apply(meas.translation()))
     std = (rec.extras or {}).get("tracker/pose_std")
     noise = float(np.sqrt(np.mean(np.asarray(std)[:, :3] ** 2))) if std is not None else None
     return Prediction(

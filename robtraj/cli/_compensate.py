@@ -4,6 +4,7 @@ with the calibrated model."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     calib = load_calibration(args.calibration)
     program, labels, robot, tcp, q_start = _inputs(args, calib)
     res = compensate(program, robot, calib, tcp, q_start, tcp=args.tcp, names=labels)
-    corrected = program.__class__(targets=res.commands, motion=program.motion, speed=program.speed)
+    corrected = dataclasses.replace(program, targets=res.commands, segment=None)
     _output.write_text(args.out, program_csv(corrected, np.asarray(labels)))
     print(
         f"wrote {args.out}: {len(res.joints)} targets; the calibrated model puts the TCP "

@@ -24,8 +24,8 @@ import numpy as np
 from scipy import ndimage, signal
 
 from .._errors import UserError
-from ..jax_ops import quat_conjugate, quat_multiply, weighted_procrustes
-from ..model import RobotModel, forward_kinematics
+from ..jax_ops import rotation_angle, weighted_procrustes
+from ..model import RobotModel, forward_kinematics, pose_se3
 from ..recording import Pose, finite_points
 from ._poses import CHUNK, fit_poses
 
@@ -58,14 +58,6 @@ class ClockAlignment:
     channels: tuple[str, ...]
     overlap: float
 
-    def to_attrs(self) -> dict:
-        return {
-            "clock_offset_s": self.offset,
-            "clock_offset_sigma_s": self.sigma,
-            "clock_correlation": self.correlation,
-            "clock_channels": ",".join(self.channels),
-        }
-
 
 @dataclasses.dataclass(frozen=True)
 class _Speeds:
@@ -82,9 +74,8 @@ def _pair_speeds(time, quaternion_wxyz, position, span: float) -> _Speeds:
     time = np.asarray(time, np.float64)
     lag = max(1, int(round(span / max(np.median(np.diff(time)), 1e-9))))
     t0, t1 = time[:-lag], time[lag:]
-    q0, q1 = jnp.asarray(quaternion_wxyz[:-lag]), jnp.asarray(quaternion_wxyz[lag:])
-    rel = np.asarray(quat_multiply(quat_conjugate(q0), q1))
-    angle = 2.0 * np.arctan2(np.linalg.norm(rel[:, 1:], axis=1), np.abs(rel[:, 0]))
+    q = jnp.asarray(quaternion_wxyz)
+    angle = np.asarray(rotation_angle(q[:-lag], q[lag:]))
     dt = t1 - t0
     shift = np.linalg.norm(position[lag:] - position[:-lag], axis=1)
     return _Speeds(0.5 * (t0 + t1), angle / dt, shift / dt)
@@ -115,8 +106,8 @@ def stream_speeds(time: np.ndarray, positions: np.ndarray, span: float = SPEED_S
         both = finite_points(a) & finite_points(b)
         fit = weighted_procrustes(jnp.asarray(a), jnp.asarray(b), jnp.asarray(both, np.float64))
         q.append(np.asarray(fit.quaternion_wxyz))
-    q = np.concatenate(q)
-    angle = 2.0 * np.arctan2(np.linalg.norm(q[:, 1:], axis=1), np.abs(q[:, 0]))
+    q = jnp.asarray(np.concatenate(q))
+    angle = np.asarray(rotation_angle(jnp.broadcast_to(jnp.eye(4, dtype=q.dtype)[0], q.shape), q))
     dt = time[lag:] - time[:-lag]
     return _Speeds(0.5 * (time[lag:] + time[:-lag]), angle / dt, np.full(dt.shape, np.nan))
 
@@ -124,16 +115,7 @@ def stream_speeds(time: np.ndarray, positions: np.ndarray, span: float = SPEED_S
 def tool_poses(robot: RobotModel, joints: np.ndarray, flange_from_tool: Pose | None) -> Pose:
     """base←tool `(K, ·)` by nominal forward kinematics of `joints` `(K, J)` [rad] (the
     flange where `flange_from_tool` is None)."""
-    fft = jaxlie.SE3.identity()
-    if flange_from_tool is not None:
-        fft = jaxlie.SE3(
-            jnp.concatenate(
-                [
-                    jnp.asarray(flange_from_tool.quaternion_wxyz),
-                    jnp.asarray(flange_from_tool.position),
-                ]
-            )
-        )
+    fft = jaxlie.SE3.identity() if flange_from_tool is None else pose_se3(flange_from_tool)
     pose = jax.jit(jax.vmap(lambda q: (forward_kinematics(robot, q) @ fft).wxyz_xyz))(
         jnp.asarray(joints, jnp.float64)
     )

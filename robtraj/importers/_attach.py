@@ -14,6 +14,7 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
@@ -25,6 +26,7 @@ from ..estimate import (
     tool_poses,
     tracker_speeds,
 )
+from ..jax_ops import rotation_angle
 from ..model import robot_from_log
 from ..recording import Pose, Program, Recording, RobotLog, Tool
 from ._common import load_constellation
@@ -231,7 +233,7 @@ def program_segments(
     None."""
     p, q = tcp.position, tcp.quaternion_wxyz
     speed = np.linalg.norm(np.gradient(p, robot_time, axis=0), axis=1)
-    turn = 2 * np.arccos(np.clip(np.abs(np.sum(q[1:] * q[:-1], axis=1)), 0.0, 1.0))
+    turn = np.asarray(rotation_angle(jnp.asarray(q[:-1]), jnp.asarray(q[1:])))
     rate = turn / np.diff(robot_time)
     turning = np.concatenate([rate[:1], np.maximum(rate[1:], rate[:-1]), rate[-1:]])
     rest = (speed < AT_REST) & (turning < AT_REST_ANGULAR)

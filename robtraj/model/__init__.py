@@ -67,6 +67,7 @@ from ._measurement import (
     motion_sign,
     predict_tool_poses,
 )
+from ._pose import pose_se3
 from ._tool import hemispherical_tool
 from ._urdf import dh_link_matrix, urdf_text
 
@@ -121,6 +122,7 @@ __all__ = [
     "motion_sign",
     "noise_sigma",
     "parse_effect",
+    "pose_se3",
     "predict_tool_poses",
     "redundant_link_parameters",
     "register_effect",
