@@ -12,7 +12,10 @@ the fields the analysis needs and turns every defect into one `UserError` naming
   null), ``effects`` (names of `robtraj.model.known_effects`, finite values), ``covariance``
   (null, or ``{"parameters": [..], "matrix": [[..]]}`` square of that size, finite),
   ``identifiability`` (an object; its ``undetermined``, if given, a list of parameter
-  names the calibration's recording did not determine: the analyses warn about them).
+  names the calibration's recording did not determine: the analyses warn about them),
+  ``schema_version`` (1 when absent; another than this robtraj reads is refused),
+  ``maps`` (per joint angle error map in ``effects``: which knots were estimated, their σ,
+  the joint range fitted), ``provenance`` (the command that made it, the effects named).
 """
 
 from __future__ import annotations
@@ -140,6 +143,36 @@ def _covariance_robust(doc: dict, cov: dict | None) -> dict | None:
     return {"matrix": m.tolist(), "clusters": clusters, "effective_clusters": eff}
 
 
+def _check_version(doc: dict) -> None:
+    from .estimate.calibration import READABLE_VERSIONS, SCHEMA_VERSION
+
+    v = doc.get("schema_version", 1)
+    if isinstance(v, bool) or not isinstance(v, int) or v not in READABLE_VERSIONS:
+        raise UserError(
+            f"schema_version {json.dumps(v)[:20]}: this robtraj reads CALIB.json versions "
+            f"{', '.join(map(str, READABLE_VERSIONS))} (writes {SCHEMA_VERSION}); "
+            "write it again with this robtraj or use the robtraj that wrote it"
+        )
+
+
+def _maps(doc: dict) -> None:
+    maps = doc.get("maps") or {}
+    if not isinstance(maps, dict):
+        raise UserError("'maps' must be an object {joint{j}_map: {...}}")
+    effects = doc.get("effects") or {}
+    for name, m in maps.items():
+        if name not in effects:
+            raise UserError(f"maps.{name} describes a map that is not in 'effects'")
+        if not isinstance(m, dict) or "estimated" not in m:
+            raise UserError(f"maps.{name} must be an object with 'estimated'")
+        n = np.size(effects[name])
+        if not isinstance(m["estimated"], list) or len(m["estimated"]) != n:
+            raise UserError(f"maps.{name}.estimated must list {n} booleans, one per knot")
+        rng = m.get("fitted_range_rad")
+        if rng is not None:
+            _numbers(rng, (2,), f"maps.{name}.fitted_range_rad")
+
+
 def parse_calibration(doc: Any, name: str = "CALIB.json"):
     """A `CalibrationResult` from the parsed JSON `doc`; `UserError` (prefixed `name`) on any
     schema defect."""
@@ -148,11 +181,13 @@ def parse_calibration(doc: Any, name: str = "CALIB.json"):
     try:
         if not isinstance(doc, dict):
             raise UserError(f"must hold a JSON object, not a {type(doc).__name__}")
+        _check_version(doc)
         clean = dict(doc)
         clean["camera_from_base"] = _pose(doc, "camera_from_base")
         clean["flange_from_tool"] = _pose(doc, "flange_from_tool")
         clean["constellation"] = _constellation(doc)
         clean["effects"] = _effects(doc)
+        _maps(clean)
         for key in ("time_offset", "residual_rms_m", "noise_sigma_m"):
             v = _optional_number(doc, key, nonnegative=key != "time_offset")
             clean.pop(key, None)
@@ -205,3 +240,26 @@ def load_calibration(path: str | Path):
     except RecursionError:
         raise UserError(f"{path}: JSON nested too deeply") from None
     return parse_calibration(doc, str(path))
+
+
+def check_robot(calib, rec, name: str = "CALIB.json") -> None:
+    """`UserError` when `rec` (a `Recording`) logs another robot model than the one
+    `calib` calibrated: another joint count, DH table or flange (1e-9 m/rad). A
+    calibration that does not name its robot (an older CALIB.json) is not checked."""
+    if not calib.robot or rec.robot is None:
+        return
+    from .importers import robot_description
+    from .model import robot_from_log
+
+    ours = robot_description(calib.robot, f"{name}: robot").robot_model()
+    theirs = robot_from_log(rec.robot)
+    same = ours.dh.shape == theirs.dh.shape and all(
+        np.allclose(np.asarray(a), np.asarray(b), rtol=0.0, atol=1e-9)
+        for a, b in ((ours.dh, theirs.dh), (ours.last_from_flange, theirs.last_from_flange))
+    )
+    if not same:
+        raise UserError(
+            f"{name} calibrated robot {ours.name!r} ({ours.n_joints} joints); the recording "
+            f"logs {theirs.name!r} ({theirs.n_joints} joints) with another DH table or "
+            "flange: a calibration holds only for the robot model it was made on"
+        )

@@ -48,6 +48,12 @@ class Pose:
     position: np.ndarray
     quaternion_wxyz: np.ndarray
 
+    @classmethod
+    def from_wxyz_xyz(cls, wxyz_xyz) -> Pose:
+        """The pose(s) of jaxlie's ``wxyz_xyz`` layout `(..., 7)` (float64 copies)."""
+        a = np.asarray(wxyz_xyz, np.float64)
+        return cls(position=a[..., 4:].copy(), quaternion_wxyz=a[..., :4].copy())
+
 
 @dataclasses.dataclass(frozen=True)
 class RobotLog:
@@ -58,7 +64,9 @@ class RobotLog:
     Optional: `flange`, the flange (tool0) frame in the last DH frame (a `Pose` of
     shape `()`), and `link_mass` `(J,)` [kg], the mass of each link for gravity torques;
     where given they replace the built-in model's (a DH table without them: identity
-    flange, 5 kg per link); `payload_mass` [kg] at the flange likewise (default 1 kg).
+    flange, 5 kg per link); `payload_mass` [kg] at the flange likewise (default 1 kg);
+    `joint_limits` `(J, 2)` [rad] each joint's range ``[lower, upper]`` (±inf: no limit
+    on that side) likewise (a DH table without them: unlimited).
 
     A log joined to a tracker stream (`robtraj attach`) has been moved onto the tracker
     clock: `time` is the controller's clock minus `clock_offset` [s], found from the data
@@ -75,11 +83,13 @@ class RobotLog:
     payload_mass: float | None = None
     clock_offset: float = 0.0
     clock_offset_sigma: float | None = None
+    joint_limits: np.ndarray | None = None
 
     def model_document(self) -> dict[str, Any]:
         """The robot model alone as the DH JSON document of docs/import.md (metres,
         radians): ``{"model": name}`` for a built-in, else ``{"name", "dh", "flange",
-        "link_mass", "payload_mass"}`` with what is given."""
+        "link_mass", "payload_mass", "joint_limits"}`` with what is given (an infinite
+        limit as null)."""
         if self.dh is None:
             return {"model": self.model}
         doc: dict[str, Any] = {"name": self.model or "custom", "unit": "m", "angle_unit": "rad"}
@@ -93,7 +103,16 @@ class RobotLog:
             doc["link_mass"] = np.asarray(self.link_mass, np.float64).tolist()
         if self.payload_mass is not None:
             doc["payload_mass"] = float(self.payload_mass)
+        if self.joint_limits is not None:
+            doc["joint_limits"] = limits_document(self.joint_limits)
         return doc
+
+
+def limits_document(limits: np.ndarray, scale: float = 1.0) -> list[list[float | None]]:
+    """Joint limits `(J, 2)` [rad] as JSON rows ``[lower, upper]`` divided by `scale`,
+    an infinite limit (none on that side) as None."""
+    rows = np.asarray(limits, np.float64) / scale
+    return [[float(v) if np.isfinite(v) else None for v in row] for row in rows]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,6 +323,8 @@ def _write_into(f: h5py.File, rec: Recording) -> None:
             _write_pose(r, "flange", rec.robot.flange)
         if rec.robot.link_mass is not None:
             _create(r, "link_mass", np.asarray(rec.robot.link_mass, np.float64))
+        if rec.robot.joint_limits is not None:
+            _create(r, "joint_limits", np.asarray(rec.robot.joint_limits, np.float64))
 
     if rec.program is not None:
         p = f.create_group("program")
@@ -490,6 +511,7 @@ def _read_from(f: h5py.File, name: str, used: set[str]) -> Recording:
             dh=g("/robot/dh", False),
             flange=_get_pose(f, "/robot/flange", name, used, required=False),
             link_mass=g("/robot/link_mass", False),
+            joint_limits=g("/robot/joint_limits", False),
         )
     program = None
     if "program" in f:
@@ -656,6 +678,14 @@ def _validate(rec: Recording, name: str) -> None:
             mass = np.asarray(rec.robot.link_mass, np.float64)
             if not np.all(np.isfinite(mass) & (mass >= 0)):
                 raise RecordingError(f"{name}: /robot/link_mass must be finite and >= 0 [kg]")
+        if rec.robot.joint_limits is not None:
+            _check_shape(name, "/robot/joint_limits", rec.robot.joint_limits, (j, 2))
+            limits = np.asarray(rec.robot.joint_limits, np.float64)
+            if not np.all(limits[:, 0] <= limits[:, 1]):
+                raise RecordingError(
+                    f"{name}: /robot/joint_limits rows must be [lower, upper], lower <= upper "
+                    "[rad] (±inf: no limit on that side)"
+                )
     if rec.program is not None:
         p = np.shape(rec.program.targets.position)[0]
         _check_pose(name, "/program/targets", rec.program.targets, (p,))

@@ -1,9 +1,18 @@
 """Analysis of measured trajectories: path deviation, ISO 9283 characteristics, TUM export."""
 
+from ._accuracy_after import (
+    AccuracyAfterCompensation as AccuracyAfterCompensation,
+    accuracy_after_compensation as accuracy_after_compensation,
+)
 from ._ape import absolute_pose_error as absolute_pose_error
 from ._iso_path import (
     CornerCharacteristics as CornerCharacteristics,
     PathCharacteristics as PathCharacteristics,
+)
+from ._named_model import (
+    named_calibration as named_calibration,
+    outside_maps as outside_maps,
+    pose_calibration as pose_calibration,
 )
 from ._quat import error_components as error_components, rotation_angle as rotation_angle
 from .deviation import (

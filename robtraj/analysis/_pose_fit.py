@@ -378,6 +378,9 @@ class PoseFit:
     map_prior: tuple[float, float] | None = None
     #: entries under a Gaussian prior (the estimated maps' knots)
     prior_entries: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    #: Gauss–Newton covariance of θ's entries before the maps, `(N_PARAMS, N_PARAMS)`
+    #: (zero rows and columns on entries not estimated)
+    covariance: np.ndarray | None = dataclasses.field(default=None, repr=False)
     #: the robust σ on demand (None: a cross-series prediction, no effects)
     _robust: Callable[[], dict[str, Any]] | None = dataclasses.field(default=None, repr=False)
 
@@ -911,7 +914,34 @@ def fit_poses(
             else (MAP_SIGMA_F, MAP_LENGTH)
         ),
         prior_entries=prior_entries,
+        covariance=cov[:N_PARAMS, :N_PARAMS],
         _robust=robust if fixed is None else None,
+    )
+
+
+def frozen_fit(
+    theta: np.ndarray, z0: np.ndarray, x0: np.ndarray, estimated: tuple[str, ...] = ()
+) -> PoseFit:
+    """A model given by its θ (`parameter_names` layout) and start transforms, not
+    fitted to any series: the `fixed` source of a prediction (`fit_poses`)."""
+    p = theta.size
+    empty = np.zeros(0)
+    return PoseFit(
+        series="",
+        estimated=estimated,
+        theta=np.asarray(theta, float),
+        z0=np.asarray(z0, float),
+        x0=np.asarray(x0, float),
+        free=np.zeros(p, bool),
+        sigma_model=np.full(p, np.nan),
+        chi2=float("nan"),
+        n_residuals=0,
+        block_sigma=(float("nan"), float("nan")),
+        identifiability={"dropped": []},
+        position_error=empty,
+        angle_error=empty,
+        iterations=0,
+        converged=True,
     )
 
 

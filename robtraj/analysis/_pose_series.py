@@ -13,7 +13,7 @@ import numpy as np
 
 from .._errors import UserError
 from ..estimate.calibration import robot_world_hand_eye
-from ..model import Effects, flange_poses, gravity_torque, ur10
+from ..model import Effects, flange_poses, gravity_torque, robot_from_log, ur10
 
 SERIES_FILES = {
     "A": "Series_A/measurements_grid.csv",
@@ -132,12 +132,29 @@ def load_series(name: str, root: str | Path) -> PoseSeries:
     )
 
 
+def is_ur10(rec) -> bool:
+    """Whether `rec` logs the UR10 the pose fit models (DH table, flange, link masses
+    and payload of the built-in ``ur10``)."""
+    if rec.robot is None:
+        return False
+    ours, theirs = ur10(), robot_from_log(rec.robot)
+    return ours.dh.shape == theirs.dh.shape and all(
+        np.allclose(np.asarray(getattr(ours, f)), np.asarray(getattr(theirs, f)), atol=1e-9)
+        for f in ("dh", "last_from_flange", "link_mass", "payload_mass")
+    )
+
+
 def series_from_recording(rec, name: str = "recording") -> PoseSeries:
     """The adapter from an imported `Recording` (``robtraj import --preset ipa-ur10``):
     measured poses from `/probe/tool_pose`, joints from `/robot/joints`, temperature and
     the tracker's `/tracker/pose_std` extra."""
     if rec.probe is None or rec.robot is None:
         raise UserError("the recording has no /probe poses or no /robot joint log")
+    if not is_ur10(rec):
+        raise UserError(
+            f"the pose fit models the UR10 (robot {rec.robot.model!r} logged): 6-DOF pose "
+            "series of other robots are not supported yet"
+        )
     p = rec.probe.tool_pose
     measured = np.concatenate([p.quaternion_wxyz, p.position], -1)
     std = rec.extras.get("tracker/pose_std") if rec.extras else None

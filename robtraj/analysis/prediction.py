@@ -27,6 +27,7 @@ import numpy as np
 from jaxtyping import Float
 
 from .._errors import UserError
+from ..calibration_file import check_robot
 from ..estimate import base_frame_poses
 from ..estimate.calibration import CalibrationResult, fit
 from ..model import (
@@ -38,7 +39,9 @@ from ..model import (
     robot_from_log,
 )
 from ..recording import Recording
+from ._named_model import pose_prediction, pose_representable
 from ._pose_fit import error_summary
+from ._pose_series import is_ur10
 
 #: the rigid transforms a prediction may refit
 RIGID = ("camera_from_base", "flange_from_tool")
@@ -97,8 +100,24 @@ class Prediction:
 def predicted_tool_poses(rec: Recording, calib, time: np.ndarray) -> jaxlie.SE3:
     """camera←tool that `calib` predicts from `rec`'s robot log at tracker times `time` [s]
     (its clock offset, effects and drift variable applied)."""
+    robot, q, direction, drift, moving = model_inputs(rec, calib, time)
+    return predict_tool_poses(
+        robot,
+        calib.effects_module(rec.robot.joints.shape[1]),
+        pose_se3(calib.camera_from_base),
+        pose_se3(calib.flange_from_tool),
+        q,
+        direction,
+        drift,
+        moving,
+    )
+
+
+def model_inputs(rec: Recording, calib, time: np.ndarray) -> tuple:
+    """What the forward model (`predict_tool_poses`) takes besides the parameters, at
+    tracker times `time` [s]: the robot, the joints at ``time + τ``, their direction and
+    motion sign, and the drift variable (K since the first frame, else minutes)."""
     robot = robot_from_log(rec.robot)
-    effects = calib.effects_module(rec.robot.joints.shape[1])
     t = np.asarray(time, float) + calib.time_offset
     log_t, joints = np.asarray(rec.robot.time, float), np.asarray(rec.robot.joints, float)
     q = interpolate_joints(jnp.asarray(log_t), jnp.asarray(joints), jnp.asarray(t))
@@ -108,21 +127,20 @@ def predicted_tool_poses(rec: Recording, calib, time: np.ndarray) -> jaxlie.SE3:
         drift = np.asarray(rec.temperature, float)[frames] - float(rec.temperature[0])
     else:
         drift = (np.asarray(time, float) - float(rec.time[0])) / 60.0
-    return predict_tool_poses(
+    moving = motion_sign(log_t, joints, t, calib.motion_threshold)
+    return (
         robot,
-        effects,
-        pose_se3(calib.camera_from_base),
-        pose_se3(calib.flange_from_tool),
         q,
         jnp.asarray(direction),
         jnp.asarray(np.nan_to_num(drift)),
-        jnp.asarray(motion_sign(log_t, joints, t, calib.motion_threshold)),
+        jnp.asarray(moving),
     )
 
 
 def _check(rec: Recording, calib: CalibrationResult) -> None:
     if rec.robot is None or rec.robot.joints.shape[0] < 2:
         raise UserError("the recording has no robot log (/robot/joints): nothing to predict from")
+    check_robot(calib, rec)
     n = rec.robot.joints.shape[1]
     sizes = {k: np.size(v) for k, v in calib.effects.items() if k != "time_offset"}
     per_joint = {
@@ -163,18 +181,13 @@ def predict(
     unknown = np.isin(rec.led_ids, np.asarray(calibration.unseen_leds, int))
     if unknown.any():  # LEDs the calibration never saw: their positions are not known
         rec = rec.replace(positions=np.where(unknown[None, :, None], np.nan, rec.positions))
+    if _probed(rec) and pose_representable(calibration) and is_ur10(rec):
+        return _probe_prediction(rec, calibration, refit)
     hold = tuple(g for g in (*RIGID, "constellation") if g not in refit)
     calib = fit(rec, init=calibration, hold=hold, progress=progress)
-
-    if rec.probe is not None and len(rec.probe.time) == rec.time.size:  # a 6-DOF tracker
+    if _probed(rec):
         time = np.asarray(rec.probe.time, float)
-        measured = np.concatenate(
-            [
-                np.asarray(rec.probe.tool_pose.quaternion_wxyz),
-                np.asarray(rec.probe.tool_pose.position),
-            ],
-            -1,
-        )
+        measured = _wxyz_xyz(rec.probe.tool_pose)
         by = "probe"
     else:
         est = base_frame_poses(rec, calib).poses
@@ -188,8 +201,6 @@ def predict(
     pos = np.linalg.norm(np.asarray(pred.translation()) - measured[:, 4:], axis=-1)
     ang = np.linalg.norm(np.asarray(delta.rotation().log()), axis=-1)
     tool_in_base = np.asarray(pose_se3(calib.camera_from_base).inverse().apply(meas.translation()))
-    std = (rec.extras or {}).get("tracker/pose_std")
-    noise = float(np.sqrt(np.mean(np.asarray(std)[:, :3] ** 2))) if std is not None else None
     return Prediction(
         time=time,
         position_error=pos,
@@ -198,5 +209,40 @@ def predict(
         calibration=calib,
         refit=refit,
         measured_by=by,
-        noise_m=noise,
+        noise_m=_tracker_noise(rec),
+    )
+
+
+def _probed(rec: Recording) -> bool:
+    """Whether every frame of `rec` has a 6-DOF probe pose."""
+    return rec.probe is not None and len(rec.probe.time) == rec.time.size
+
+
+def _wxyz_xyz(pose) -> np.ndarray:
+    return np.concatenate([np.asarray(pose.quaternion_wxyz), np.asarray(pose.position)], -1)
+
+
+def _tracker_noise(rec: Recording) -> float | None:
+    """The tracker's per-axis position noise [m] from `/tracker/pose_std`, if reported."""
+    std = (rec.extras or {}).get("tracker/pose_std")
+    return float(np.sqrt(np.mean(np.asarray(std)[:, :3] ** 2))) if std is not None else None
+
+
+def _probe_prediction(
+    rec: Recording, calibration: CalibrationResult, refit: tuple[str, ...]
+) -> Prediction:
+    """The prediction of a 6-DOF probe recording by its pose residual
+    (`_named_model.pose_prediction`)."""
+    fit6, calib = pose_prediction(rec, calibration, refit)
+    measured = _wxyz_xyz(rec.probe.tool_pose)
+    z = pose_se3(calib.camera_from_base)
+    return Prediction(
+        time=np.asarray(rec.probe.time, float),
+        position_error=fit6.position_error,
+        angle_error=fit6.angle_error,
+        tool_position=np.asarray(z.inverse().apply(jnp.asarray(measured[:, 4:]))),
+        calibration=calib,
+        refit=refit,
+        measured_by="probe",
+        noise_m=_tracker_noise(rec),
     )

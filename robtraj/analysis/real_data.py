@@ -59,6 +59,7 @@ import numpy as np
 
 from .._blas import serial_blas
 from ..model import MAP_PRIOR_GRID, map_words
+from ._named_model import pose_calibration
 from ._pose_fit import (
     HARMONIC_TERMS,
     PoseFit,
@@ -341,6 +342,18 @@ class Workflow:
     def markdown(self) -> str:
         """The report table: mean / max position [mm], orientation [deg], gap [mm]."""
         return rows_markdown(self.table())
+
+    def calibration_of(self, key: str, rec, source: str):
+        """Series `key`'s final named model as a calibration (`CalibrationResult`), `rec`
+        the recording the series was read from and `source` its path."""
+        return pose_calibration(
+            self.selections[key].fits[-1],
+            rec,
+            self.data[key],
+            named=self.named[key],
+            noise_m=self.noise_m[key],
+            source=source,
+        )
 
     def to_json(self) -> dict[str, Any]:
         """Named effects per series with their parameters, cross-validation and

@@ -49,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser, *, calibration_required: bool = Tr
 
 def load(args: argparse.Namespace, *, need_program: bool = True):
     """(recording, calibration, base-frame poses) for an analysis command."""
-    from ..calibration_file import load_calibration
+    from ..calibration_file import check_robot, load_calibration
     from ..estimate import base_frame_poses
     from ..recording import read_recording
 
@@ -61,6 +61,7 @@ def load(args: argparse.Namespace, *, need_program: bool = True):
         from ..estimate.calibration import fit
 
         calib = fit(rec)
+    check_robot(calib, rec, str(args.calibration))
     if not np.isin(rec.led_ids, np.asarray(calib.led_ids)).sum() >= 3:
         raise UserError(
             f"{args.recording}: fewer than 3 of its LEDs are in the calibration's constellation "
@@ -70,8 +71,42 @@ def load(args: argparse.Namespace, *, need_program: bool = True):
     if not np.any(bf.valid):
         raise UserError(f"{args.recording}: no frame has a tool pose with this calibration")
     check_same_setup(rec, calib, bf, args.recording)
-    warn_undetermined(calib, str(args.calibration or "the calibration"), "the result depends")
+    name = str(args.calibration or "the calibration")
+    warn_undetermined(calib, name, "the result depends")
+    args.warnings = warn_outside_maps(calib, _frame_joints(rec), name)
     return rec, calib, bf
+
+
+def _frame_joints(rec) -> np.ndarray:
+    """The logged joint angles `(N, joints)` [rad] (none without a robot log)."""
+    return np.zeros((0, 0)) if rec.robot is None else np.asarray(rec.robot.joints, float)
+
+
+def warn_outside_maps(calib, joints, name: str, rows: str = "frames") -> list[dict]:
+    """A warning line on stderr when `joints` `(N, joints)` [rad] reach angles where a
+    joint angle error map of `calib` was not fitted (it predicts its prior mean, zero,
+    there); returns the warnings for the JSON output (`outside_maps`)."""
+    import sys
+
+    from ..analysis import outside_maps
+
+    out = outside_maps(calib, joints)
+    if out:
+        parts = ", ".join(
+            f"joint {w['joint']} in {100 * w['fraction']:.1f} % of the {rows}"
+            + (
+                ""
+                if not w.get("fitted_range_rad")
+                else " (fitted on {:.2f} to {:.2f} rad)".format(*w["fitted_range_rad"])
+            )
+            for w in out
+        )
+        print(
+            f"robtraj: warning: {name}'s joint angle error maps were not fitted where the "
+            f"joints are here: {parts}; there the maps predict no error (their prior mean)",
+            file=sys.stderr,
+        )
+    return [{"kind": "joint_map_outside_fitted_range", "rows": rows, **w} for w in out]
 
 
 def undetermined_rigid(calib) -> list[str]:
@@ -155,5 +190,6 @@ def check_same_setup(rec, calib, bf, name: str) -> None:
         )
 
 
-def write_json(path: str | None, doc: dict) -> None:
-    _output.write_json(path, doc)
+def write_json(path: str | None, doc: dict, warnings: list[dict] | None = None) -> None:
+    """`doc` to `path` with the command's `warnings` (`warn_outside_maps`) added, if any."""
+    _output.write_json(path, {**doc, "warnings": warnings} if warnings else doc)

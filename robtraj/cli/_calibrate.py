@@ -53,6 +53,13 @@ def register(sub) -> argparse.ArgumentParser:
         "error map, 256 knots per revolution under a Gaussian smoothness prior)",
     )
     p.add_argument(
+        "--init",
+        metavar="CALIB.json",
+        help="start from this calibration (e.g. a named model from `robtraj discrepancy "
+        "--calibration-out`): its transforms, constellation and effects are the start, and "
+        "its effects not in --estimate stay at its values",
+    )
+    p.add_argument(
         "--json",
         nargs="?",
         const="-",
@@ -99,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--max-steps must be at least 1, not {args.max_steps}")
     rec = read_recording(args.recording)
     check_leds_seen(rec, args.recording)
+    init = _initial(args, rec)
     from ..estimate.calibration import fit
 
     with progress_status("calibrating") as say:
@@ -106,11 +114,14 @@ def run(args: argparse.Namespace) -> int:
             rec,
             estimate=estimate,
             robust=args.robust,
+            init=init,
             max_iter=args.max_steps,
             progress=say,
             suggest=SUGGESTED_POSES,
             motion_threshold=args.motion_threshold,
         )
+    if init is not None:
+        res = _carried_over(res, init, args.init)
     doc = res.to_json()
     text = json.dumps(doc, indent=1)
     out = Path(args.out)
@@ -155,6 +166,38 @@ def run(args: argparse.Namespace) -> int:
     print("\n".join(lines))
     warn_undetermined(res, str(out), "iso9283, deviation and report results depend")
     return 0 if res.converged else NOT_CONVERGED
+
+
+def _initial(args: argparse.Namespace, rec):
+    """The --init calibration, checked against the recording (robot model; joint angles
+    outside its maps' fitted range are warned about), or None."""
+    if not args.init:
+        return None
+    from ..calibration_file import check_robot, load_calibration
+    from ._analysis_inputs import warn_outside_maps
+
+    init = load_calibration(args.init)
+    check_robot(init, rec, args.init)
+    if rec.robot is not None:
+        warn_outside_maps(init, rec.robot.joints, args.init)
+    return init
+
+
+def _carried_over(res, init, init_path: str):
+    """`res` with what it kept of `init`: the maps' documents (knots, σ, fitted range)
+    of the maps it held, and the provenance."""
+    import dataclasses
+
+    held = {k: v for k, v in init.maps.items() if k in res.effects and k not in res.estimated}
+    return dataclasses.replace(
+        res,
+        maps={**held, **res.maps},
+        provenance={
+            "command": "calibrate",
+            "init": str(init_path),
+            "init_provenance": init.provenance,
+        },
+    )
 
 
 def _next_pose_lines(nxt) -> list[str]:

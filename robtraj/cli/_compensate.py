@@ -24,7 +24,9 @@ def register(sub) -> argparse.ArgumentParser:
             "and the Cartesian command the controller's nominal model turns into those "
             "joints. PROGRAM: a recording (its /program, robot, nominal TCP and first "
             "joint angles) or a program CSV/JSON with --tool and --start-joints. Writes "
-            "the commands as a program CSV (docs/campaign.md)."
+            "the commands as a program CSV (docs/campaign.md). A target out of reach, or "
+            "whose nominal or compensated joints leave the robot's joint limits, is "
+            "refused by name."
         ),
     )
     p.add_argument("program", metavar="PROGRAM", help="recording (.h5) or program CSV/JSON")
@@ -55,11 +57,13 @@ def run(args: argparse.Namespace) -> int:
     from ..analysis.compensation import compensate
     from ..calibration_file import load_calibration
     from ..importers import program_csv
+    from ._analysis_inputs import warn_outside_maps
 
     _output.check([args.out, args.json], force=args.force)
     calib = load_calibration(args.calibration)
     program, labels, robot, tcp, q_start = _inputs(args, calib)
     res = compensate(program, robot, calib, tcp, q_start, tcp=args.tcp, names=labels)
+    warnings = warn_outside_maps(calib, res.joints, args.calibration, "targets")
     corrected = dataclasses.replace(program, targets=res.commands, segment=None)
     _output.write_text(args.out, program_csv(corrected, np.asarray(labels)))
     print(
@@ -75,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
             "nominal_joints_rad": res.nominal_joints.tolist(),
             "predicted_error_uncompensated_m": res.error_before_m.tolist(),
             "predicted_error_compensated_m": res.error_after_m.tolist(),
+            "warnings": warnings,
         }
         _output.write_text(args.json, json.dumps(doc, indent=1))
     return 0

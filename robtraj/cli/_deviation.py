@@ -69,5 +69,5 @@ def run(args: argparse.Namespace) -> int:
             write_tum(tmp / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
             write_tum(tmp / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
         print(f"TUM trajectories in {out}/ (measured.tum, commanded.tum)")
-    _analysis_inputs.write_json(args.json, doc)
+    _analysis_inputs.write_json(args.json, doc, args.warnings)
     return 0

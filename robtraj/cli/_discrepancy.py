@@ -42,6 +42,13 @@ def register(sub) -> argparse.ArgumentParser:
     )
     p.add_argument("--json", metavar="OUT", help="write the result (DESIGN section 8)")
     p.add_argument(
+        "--calibration-out",
+        metavar="NAMED.json",
+        help="write the final named model of REC.h5 as a CALIB.json (effects, maps with "
+        "their knots and σ, rigid transforms, noise model) that evaluate, iso9283, "
+        "deviation, report, compensate and calibrate --init read like any other",
+    )
+    p.add_argument(
         "--report",
         metavar="DIR",
         help="write figures: the gap step by step, residual structure (with --validate-on: "
@@ -56,11 +63,12 @@ def register(sub) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from .._progress import progress_status
+    from ..analysis import named_calibration
     from ..analysis.discrepancy import INDISTINCT_BIC, discover
     from ..recording import read_recording
     from ._calibrate import check_leds_seen
 
-    _output.check([args.json], [args.report], force=args.force)
+    _output.check([args.json, args.calibration_out], [args.report], force=args.force)
     if args.validate_on:
         return _cross_series(args)
     rec = read_recording(args.recording)
@@ -125,11 +133,21 @@ def run(args: argparse.Namespace) -> int:
     if not doc["converged"]:
         print(f"calibration NOT converged: {doc['convergence']}")
     _output.write_json(args.json, doc)
+    _write_named(args, named_calibration(res, rec, args.recording))
     if args.report:
         with _output.new_folder(args.report) as tmp:
             figs = [Path(args.report) / Path(f).relative_to(tmp) for f in res.figures(tmp)]
         print(f"figures: {', '.join(str(f) for f in figs)}")
     return 0 if doc["converged"] else NOT_CONVERGED
+
+
+def _write_named(args: argparse.Namespace, calib) -> None:
+    """Write the named model to --calibration-out, saying what it holds."""
+    if not args.calibration_out:
+        return
+    _output.write_json(args.calibration_out, calib.to_json())
+    held = ", ".join(calib.provenance.get("named", [])) or "nominal (nothing named)"
+    print(f"named model ({held}) written to {args.calibration_out}")
 
 
 def _cross_series(args: argparse.Namespace) -> int:
@@ -144,16 +162,19 @@ def _cross_series(args: argparse.Namespace) -> int:
     from ..recording import read_recording
     from ..report import map_figure
 
-    series = {}
+    series, recs = {}, {}
     for key, path in (("A", args.recording), ("B", args.validate_on)):
-        rec = read_recording(path)
+        recs[key] = rec = read_recording(path)
         if rec.probe is None or rec.robot is None:
             raise UserError(
                 f"{path}: --validate-on needs 6-DOF pose recordings with a joint log "
                 "(robtraj import --format pose-csv); an LED recording is validated on its "
                 "own held-out time blocks without it"
             )
-        series[key] = rd.series_from_recording(rec, key)
+        try:
+            series[key] = rd.series_from_recording(rec, key)
+        except UserError as e:
+            raise UserError(f"{path}: {e}") from None
     with progress_status("discrepancy") as say:
         wf = rd.run_workflow(series, progress=say)
     print(
@@ -196,6 +217,7 @@ def _cross_series(args: argparse.Namespace) -> int:
             )
     print(wf.markdown())
     _output.write_json(args.json, wf.to_json())
+    _write_named(args, wf.calibration_of("A", recs["A"], args.recording))
     if args.report:
         with _output.new_folder(args.report) as tmp:
             figs = []

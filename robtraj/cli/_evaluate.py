@@ -6,7 +6,7 @@ import argparse
 
 from .._errors import UserError
 from . import _output
-from ._analysis_inputs import warn_undetermined
+from ._analysis_inputs import warn_outside_maps, warn_undetermined
 
 #: exit status when the refit of the rigid transforms did not converge
 NOT_CONVERGED = 3
@@ -69,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
     refit = tuple(_ALIASES[s] for s in names)
     warn_undetermined(calib, args.calibration, "the prediction depends", refit)
     pred = predict(rec, calib, list(refit))
-    _output.write_json(args.json, pred.to_json())
+    rows = "poses" if pred.measured_by == "probe" else "frames"
+    warnings = warn_outside_maps(calib, rec.robot.joints, args.calibration, rows)
+    _output.write_json(args.json, {**pred.to_json(), "warnings": warnings})
     if args.plot:
         from ..report import workspace_error_figure
 

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         "calibration_undetermined": _analysis_inputs.undetermined_rigid(calib),
         "calibration_weak": _analysis_inputs.weak_rigid(calib),
     }
-    _analysis_inputs.write_json(args.json, doc)
+    _analysis_inputs.write_json(args.json, doc, args.warnings)
     return report_missing(res)
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from .._errors import UserError
 from . import _analysis_inputs, _output
 
@@ -27,14 +29,23 @@ def register(sub) -> argparse.ArgumentParser:
 def _inputs(args: argparse.Namespace, notes: list[str]):
     """(recording, calibration or None, base-frame poses or None): what can be had from
     this recording; what cannot goes to `notes`."""
-    from ..calibration_file import load_calibration
+    from ..calibration_file import check_robot, load_calibration
     from ..estimate import base_frame_poses
     from ..recording import read_recording
 
     rec = read_recording(args.recording)
     calib = None
+    args.warnings = []
     if args.calibration:
         calib = load_calibration(args.calibration)
+        check_robot(calib, rec, args.calibration)
+        joints = np.zeros((0, 0)) if rec.robot is None else rec.robot.joints
+        args.warnings = _analysis_inputs.warn_outside_maps(calib, joints, args.calibration)
+        notes += [
+            f"the calibration's joint {w['joint']} angle error map was not fitted at "
+            f"{100 * w['fraction']:.1f} % of the frames (it predicts no error there)"
+            for w in args.warnings
+        ]
     elif rec.robot is None or rec.tool is None:
         missing = " and ".join(
             w for w, x in [("robot log", rec.robot), ("tool constellation", rec.tool)] if x is None
@@ -112,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
             "deviation": None if dev is None else dev.summary().to_json(),
             "notes": notes,
         },
+        args.warnings,
     )
     for n in notes:
         print(f"note: {n}")

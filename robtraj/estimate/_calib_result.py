@@ -14,9 +14,19 @@ from .._errors import UserError
 from ..model import MOTION_THRESHOLD, Effects
 from ..recording import Pose
 
+#: version of the CALIB.json schema written (DESIGN section 8); files without one are version 1
+SCHEMA_VERSION = 2
+#: versions this reader understands
+READABLE_VERSIONS = (1, 2)
+
 
 def _finite_or_none(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
+
+
+def _float_or_nan(x) -> float:
+    """A JSON number, or NaN for null (how NaN is written)."""
+    return float("nan") if x is None else float(x)
 
 
 def _se3(wxyz_xyz) -> jaxlie.SE3:
@@ -24,8 +34,7 @@ def _se3(wxyz_xyz) -> jaxlie.SE3:
 
 
 def _pose_of(wxyz_xyz) -> Pose:
-    a = np.asarray(wxyz_xyz, np.float64)
-    return Pose(position=a[4:].copy(), quaternion_wxyz=a[:4].copy())
+    return Pose.from_wxyz_xyz(wxyz_xyz)
 
 
 def _wxyz_xyz(pose: Pose) -> np.ndarray:
@@ -90,6 +99,14 @@ class CalibrationResult:
     motion_threshold: float = MOTION_THRESHOLD
     #: the robot model calibrated, as `RobotLog.model_document` (empty if not known)
     robot: dict[str, Any] = dataclasses.field(default_factory=dict)
+    #: per joint angle error map in `effects` (``joint{j}_map``): ``{"knots_rad",
+    #: "sigma_rad" (None where held at its prior mean), "estimated" (bool per knot),
+    #: "fitted_range_rad" [lo, hi], "prior": {"sigma_f_rad", "length_scale_rad"}}``; the
+    #: maps' σ live here, not in `covariance`
+    maps: dict[str, Any] = dataclasses.field(default_factory=dict)
+    #: how the model was made: ``{"command", "named" (effects in the order named),
+    #: "naming", "recording"}`` (empty for a plain `calibrate`)
+    provenance: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def time_offset(self) -> float:
@@ -132,6 +149,7 @@ class CalibrationResult:
             return {"position": p.position.tolist(), "quaternion_wxyz": p.quaternion_wxyz.tolist()}
 
         return {
+            "schema_version": SCHEMA_VERSION,
             "camera_from_base": pose(self.camera_from_base),
             "flange_from_tool": pose(self.flange_from_tool),
             "constellation": {
@@ -177,6 +195,8 @@ class CalibrationResult:
             else [int(i) for i in self.outlier_frames],
             "unseen_leds": list(self.unseen_leds),
             "robot": self.robot or None,
+            "maps": self.maps,
+            "provenance": self.provenance,
         }
 
     @classmethod
@@ -207,8 +227,8 @@ class CalibrationResult:
                 estimated=tuple(d.get("estimated", ())),
                 parameter_names=tuple(cov.get("parameters", ())),
                 covariance=np.asarray(cov.get("matrix", np.zeros((0, 0))), float),
-                residual_rms_m=float(d.get("residual_rms_m", float("nan"))),
-                noise_sigma_m=float(d.get("noise_sigma_m", float("nan"))),
+                residual_rms_m=_float_or_nan(d.get("residual_rms_m")),
+                noise_sigma_m=_float_or_nan(d.get("noise_sigma_m")),
                 gauge=str(gauge.get("kind", "unknown")),
                 gauge_reference=np.asarray(
                     gauge.get("reference_constellation", d["constellation"]["positions"]), float
@@ -217,10 +237,10 @@ class CalibrationResult:
                 iterations=int(d.get("iterations", 0)),
                 converged=bool(d.get("converged", False)),
                 convergence=str(d.get("convergence", "")),
-                chi2=float(d.get("chi2", float("nan"))),
+                chi2=_float_or_nan(d.get("chi2")),
                 n_residuals=int(d.get("n_residuals", 0)),
                 n_params=int(d.get("n_params", 0)),
-                log_likelihood=float(d.get("log_likelihood", float("nan"))),
+                log_likelihood=_float_or_nan(d.get("log_likelihood")),
                 residual_rms_per_led={
                     int(k): float(v) for k, v in d.get("residual_rms_per_led_m", {}).items()
                 },
@@ -234,6 +254,8 @@ class CalibrationResult:
                 n_clusters=int(robust.get("clusters", 0)),
                 motion_threshold=float(d.get("motion_threshold_rad_s", MOTION_THRESHOLD)),
                 robot=dict(d.get("robot") or {}),
+                maps=dict(d.get("maps") or {}),
+                provenance=dict(d.get("provenance") or {}),
                 clusters_effective=(
                     None
                     if robust.get("effective_clusters") is None

@@ -27,7 +27,7 @@ from .._errors import UserError
 from ..jax_ops import rotation_angle, weighted_procrustes
 from ..model import RobotModel, forward_kinematics, pose_se3
 from ..recording import Pose, finite_points
-from ._poses import CHUNK, fit_poses
+from ._poses import CHUNK, _chunk_length, _slab, fit_poses
 
 #: [s] grid of the search over every lag
 COARSE_STEP = 0.02
@@ -99,13 +99,15 @@ def stream_speeds(time: np.ndarray, positions: np.ndarray, span: float = SPEED_S
     linear speed of an unknown tool point has no counterpart on the robot: NaN."""
     time = np.asarray(time, np.float64)
     lag = max(1, int(round(span / max(np.median(np.diff(time)), 1e-9))))
+    n = time.size - lag
+    size = _chunk_length(n, CHUNK)  # chunks of a few lengths: a few compiled kernels
     q = []
-    for start in range(0, time.size - lag, CHUNK):  # bounded memory on whole recordings
-        stop = min(start + CHUNK, time.size - lag)
-        a, b = positions[start:stop], positions[start + lag : stop + lag]
+    for start in range(0, n, size):  # bounded memory on whole recordings
+        a = _slab(positions[:n], start, size, 0, np.nan)
+        b = _slab(positions[lag:], start, size, 0, np.nan)
         both = finite_points(a) & finite_points(b)
         fit = weighted_procrustes(jnp.asarray(a), jnp.asarray(b), jnp.asarray(both, np.float64))
-        q.append(np.asarray(fit.quaternion_wxyz))
+        q.append(np.asarray(fit.quaternion_wxyz)[: min(size, n - start)])
     q = jnp.asarray(np.concatenate(q))
     angle = np.asarray(rotation_angle(jnp.broadcast_to(jnp.eye(4, dtype=q.dtype)[0], q.shape), q))
     dt = time[lag:] - time[:-lag]

@@ -80,7 +80,14 @@ from ._calib_problem import (
     bundle_normal_clustered,
     residuals,
 )
-from ._calib_result import CalibrationResult, _pose_of, _se3, _wxyz_xyz
+from ._calib_result import (
+    READABLE_VERSIONS,
+    SCHEMA_VERSION,
+    CalibrationResult,
+    _pose_of,
+    _se3,
+    _wxyz_xyz,
+)
 from ._clock import clock_effects
 from ._compile_ahead import CompileAhead, in_background
 from ._next_poses import next_poses
@@ -94,6 +101,8 @@ __all__ = [
     "BundleData",
     "BundleProblem",
     "CalibrationResult",
+    "READABLE_VERSIONS",
+    "SCHEMA_VERSION",
     "Frames",
     "align_to_gauge",
     "bundle_normal",

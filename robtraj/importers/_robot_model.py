@@ -19,12 +19,21 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import UserError
-from ..recording import Pose, RobotLog
+from ..recording import Pose, RobotLog, limits_document
 from ._common import _unit_scale, quat_wxyz
 from ._urdf_chain import read_urdf_chain
 
 _ANGLE_SCALES = {"rad": 1.0, "deg": np.pi / 180.0}
-_JSON_KEYS = {"name", "dh", "unit", "angle_unit", "flange", "link_mass", "payload_mass"}
+_JSON_KEYS = {
+    "name",
+    "dh",
+    "unit",
+    "angle_unit",
+    "flange",
+    "link_mass",
+    "payload_mass",
+    "joint_limits",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +47,8 @@ class RobotDescription:
     - `flange`: the flange (tool0) frame in the last DH frame (a `Pose` of shape `()`).
     - `link_mass`: `(J,)` [kg], or None (5 kg per link).
     - `joint_names`: the URDF's names of the chain's joints, in order (else empty).
+    - `joint_limits`: `(J, 2)` [rad] each joint's range ``[lower, upper]`` (±inf: none on
+      that side), or None (a built-in's own, else unlimited).
     """
 
     name: str
@@ -47,6 +58,7 @@ class RobotDescription:
     link_mass: np.ndarray | None = None
     joint_names: tuple[str, ...] = ()
     payload_mass: float | None = None
+    joint_limits: np.ndarray | None = None
 
     @property
     def n_joints(self) -> int:
@@ -72,6 +84,7 @@ class RobotDescription:
             flange=self.flange,
             link_mass=self.link_mass,
             payload_mass=self.payload_mass,
+            joint_limits=self.joint_limits,
         )
 
 
@@ -111,6 +124,7 @@ def read_robot_model(
         link_mass=chain.link_mass,
         payload_mass=chain.payload_mass,
         joint_names=chain.joint_names,
+        joint_limits=chain.joint_limits,
     )
 
 
@@ -121,13 +135,13 @@ def write_robot_model(
     unit: str = "m",
     angle_unit: str = "rad",
 ) -> Path:
-    """Write `robot` as a DH JSON file (a built-in model with its own DH table, flange
-    and link masses); returns the path."""
+    """Write `robot` as a DH JSON file (a built-in model with its own DH table, flange,
+    link masses and joint limits); returns the path."""
     scale = _unit_scale(unit, "write_robot_model")
     if angle_unit not in _ANGLE_SCALES:
         raise UserError(f"angle unit {angle_unit!r} is not one of rad, deg")
     ang = _ANGLE_SCALES[angle_unit]
-    dh, flange, mass = robot.dh, robot.flange, robot.link_mass
+    dh, flange, mass, limits = robot.dh, robot.flange, robot.link_mass, robot.joint_limits
     if dh is None:
         from ..model import BUILTIN_ROBOTS
 
@@ -135,6 +149,8 @@ def write_robot_model(
         dh, wxyz_xyz = np.asarray(model.dh), np.asarray(model.last_from_flange)
         flange = Pose(wxyz_xyz[4:], wxyz_xyz[:4]) if flange is None else flange
         mass = np.asarray(model.link_mass) if mass is None else mass
+        if limits is None and model.joint_limits is not None:
+            limits = np.asarray(model.joint_limits)
         if robot.payload_mass is None:
             robot = dataclasses.replace(robot, payload_mass=float(model.payload_mass))
     rows = np.array(dh, np.float64)
@@ -150,6 +166,8 @@ def write_robot_model(
         doc["link_mass"] = np.asarray(mass, np.float64).tolist()
     if robot.payload_mass is not None:
         doc["payload_mass"] = float(robot.payload_mass)
+    if limits is not None:
+        doc["joint_limits"] = limits_document(limits, ang)
     path = Path(path)
     path.write_text(json.dumps(doc, indent=1) + "\n")
     return path
@@ -214,11 +232,16 @@ def robot_description(doc: Any, path: str | Path = "robot") -> RobotDescription:
         payload = _numbers([doc["payload_mass"]], path, "payload_mass")[0]
         if not payload >= 0:
             raise UserError(f"{path}: payload_mass must be a mass >= 0 [kg]")
+    limits = None
+    if "joint_limits" in doc:
+        limits = _limits_member(doc["joint_limits"], dh.shape[0], _ANGLE_SCALES[angle_unit], path)
     name = str(doc.get("name", Path(path).stem))
-    return RobotDescription(name=name, dh=dh, flange=flange, link_mass=mass, payload_mass=payload)
+    return RobotDescription(
+        name=name, dh=dh, flange=flange, link_mass=mass, payload_mass=payload, joint_limits=limits
+    )
 
 
-def _numbers(value, path: Path, key: str) -> np.ndarray:
+def _numbers(value, path: str | Path, key: str) -> np.ndarray:
     try:
         out = np.asarray(value, np.float64)
     except (TypeError, ValueError):
@@ -228,7 +251,29 @@ def _numbers(value, path: Path, key: str) -> np.ndarray:
     return out
 
 
-def _flange_member(value, scale: float, path: Path) -> Pose:
+def _limits_member(value, n_joints: int, scale: float, path: str | Path) -> np.ndarray:
+    """`(J, 2)` [rad] from ``"joint_limits"``: per joint ``[lower, upper]`` in the angle
+    unit, a null bound (or a null row) for none on that side."""
+    rows = value if isinstance(value, list) else None
+    if rows is None or len(rows) != n_joints:
+        raise UserError(
+            f"{path}: joint_limits must hold {n_joints} rows [lower, upper], one per DH row"
+        )
+    out = np.empty((n_joints, 2))
+    for i, row in enumerate(rows):
+        row = [None, None] if row is None else row
+        if not isinstance(row, list) or len(row) != 2:
+            raise UserError(f"{path}: joint_limits row {i} must be [lower, upper] (null: none)")
+        for k, (bound, none) in enumerate(zip(row, (-np.inf, np.inf), strict=True)):
+            out[i, k] = (
+                none if bound is None else _numbers([bound], path, "joint_limits")[0] * scale
+            )
+        if not out[i, 0] <= out[i, 1]:
+            raise UserError(f"{path}: joint_limits row {i} has lower > upper")
+    return out
+
+
+def _flange_member(value, scale: float, path: str | Path) -> Pose:
     if not isinstance(value, dict) or set(value) != {"position", "quaternion_wxyz"}:
         raise UserError(f'{path}: "flange" must be {{"position": [..], "quaternion_wxyz": [..]}}')
     position = _numbers(value["position"], path, "flange position") * scale

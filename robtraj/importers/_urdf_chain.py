@@ -8,6 +8,9 @@ direction of its axis, with the URDF's positive sense. `dh_from_axes` turns thes
 into DH frames (DH z_{i-1} is joint i's line) by the common-normal construction; the
 flange transform is what remains, so DH forward kinematics equals the URDF's for every
 q (both are the product of the same screw motions applied to the same zero pose).
+The DH joint angles are the URDF's, so a revolute joint's ``<limit lower upper>`` is its
+range as it stands (a bound the file leaves out: none on that side); a continuous joint
+has none.
 """
 
 from __future__ import annotations
@@ -31,7 +34,9 @@ _CHECK_TOL = 1e-7  # DH axes farther than this from the URDF's (m, rad): refused
 @dataclasses.dataclass(frozen=True)
 class UrdfChain:
     """A URDF's chain: `dh` `(J, 4)` [m, m, rad, rad], `last_from_flange` `(4, 4)` (the
-    flange in the last DH frame), `link_mass` `(J,)` [kg], the chain's `joint_names`."""
+    flange in the last DH frame), `link_mass` `(J,)` [kg], the chain's `joint_names`;
+    `joint_limits` `(J, 2)` [rad] ``[lower, upper]`` per joint (±inf: none on that
+    side), None where no joint has a limit."""
 
     name: str
     joint_names: tuple[str, ...]
@@ -39,6 +44,7 @@ class UrdfChain:
     last_from_flange: np.ndarray
     link_mass: np.ndarray
     payload_mass: float | None = None
+    joint_limits: np.ndarray | None = None
 
 
 def read_urdf_chain(
@@ -46,8 +52,8 @@ def read_urdf_chain(
 ) -> UrdfChain:
     """The DH equivalent of the URDF at `path` (see the module docstring); `UserError`
     (one line) for malformed XML, no serial chain of revolute joints to the flange,
-    prismatic, floating, planar or mimic joints, or a first joint axis that is not the
-    base z axis."""
+    prismatic, floating, planar or mimic joints, a first joint axis that is not the
+    base z axis, or a joint limit with lower > upper."""
     robot = _load(path)
     tree = _Tree(path, robot)
     flange_link = flange_link or tree.flange_link()
@@ -68,7 +74,29 @@ def read_urdf_chain(
         last_from_flange=last_from_flange,
         link_mass=np.array([tree.mass(j.child, flange_link) for j in joints], np.float64),
         payload_mass=tree.payload(flange_link),
+        joint_limits=_joint_limits(path, joints),
     )
+
+
+def _joint_limits(path: Path, joints: list) -> np.ndarray | None:
+    """`(J, 2)` [rad] ``[lower, upper]`` of the movable `joints` (continuous, or a bound
+    left out: ±inf), None where none has a finite bound."""
+    rows = []
+    for j in joints:
+        limit = j.limit if j.type == "revolute" else None
+        lower = getattr(limit, "lower", None)
+        upper = getattr(limit, "upper", None)
+        row = [
+            -np.inf if lower is None else float(lower),
+            np.inf if upper is None else float(upper),
+        ]
+        if not row[0] <= row[1]:
+            raise UserError(
+                f"{path}: joint {j.name!r} has limits lower {row[0]:g} > upper {row[1]:g} [rad]"
+            )
+        rows.append(row)
+    limits = np.array(rows, np.float64)
+    return limits if np.isfinite(limits).any() else None
 
 
 class _Tree:

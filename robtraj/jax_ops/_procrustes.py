@@ -64,7 +64,8 @@ def weighted_procrustes(
     Newton's method on the characteristic quartic of N (QCP: Theobald 2005, Liu et al.
     2010) from an upper bound, so it converges monotonically; the eigenvector is the
     best-conditioned column of the adjugate of ``N - λ I``. No eigen-solver or SVD,
-    whole-array and branch-free. Exact least-squares solution, so it also eliminates
+    whole-array and branch-free; the weighted moments are two matrix products per block
+    of frames, the residuals one more. Exact least-squares solution, so it also eliminates
     per-frame poses in a bundle adjustment. Differentiable w.r.t. `model`, `measured`
     and `weights` (the last Newton step carries the implicit derivative of λ, which
     exists for every valid frame; `condition` carries no gradient).
@@ -84,6 +85,10 @@ def weighted_procrustes(
     A `RigidFit`. Frames with fewer than 3 used LEDs, or with (nearly) collinear used
     LEDs (`condition` below `collinear_threshold(dtype)`), get ``valid=False`` and NaN
     pose and rms.
+
+    Inputs of up to one block (4096 frames) share one compiled kernel; longer ones are
+    compiled per number of frames, like any jitted function (callers with varying
+    lengths pad them to a few, as `robtraj.estimate` does for its chunks).
     """
     if measured.ndim != 3 or measured.shape[-1] != 3:
         raise ValueError(f"measured must be (frames, leds, 3), got {measured.shape}")
@@ -95,16 +100,14 @@ def weighted_procrustes(
         raise ValueError(f"weights {weights.shape} do not match measured {measured.shape}")
     dtype = jnp.result_type(model, measured, weights)
     model, measured, weights = model.astype(dtype), measured.astype(dtype), weights.astype(dtype)
-    # Pad the frames to one block or a power of two (weight 0: invalid frames, cut off
-    # again), so callers with varying frame counts (e.g. one call per static segment)
-    # reuse a few compiled kernels; a block of frames costs far less than a compilation.
     n = measured.shape[0]
-    padded = max(_BLOCK, 1 << max(n - 1, 0).bit_length())
-    if padded == n:
+    if n >= _BLOCK:
         return _weighted_procrustes(model, measured, weights)
+    # Fewer frames than a block: padded to one block (weight 0: invalid frames, cut off
+    # again), so short inputs of any length reuse one compiled kernel.
 
     def pad(a):
-        return jnp.pad(a, [(0, padded - n)] + [(0, 0)] * (a.ndim - 1))
+        return jnp.pad(a, [(0, _BLOCK - n)] + [(0, 0)] * (a.ndim - 1))
 
     if model.ndim == 3:
         model = pad(model)
@@ -112,67 +115,172 @@ def weighted_procrustes(
     return jax.tree.map(lambda a: a[:n], fit)
 
 
-# Newton steps on the quartic (λ1) and on the deflated cubic (λ2, for the gap) and on the
-# scatter's cubic. From the upper bound the iterates decrease monotonically to the root;
-# for a well-fitting frame the bound is within noise of λ1 and 2-3 steps reach full
-# precision, a mirror-image fit needs ~8 (tested).
-_STEPS_TOP = 10
+# Newton steps on the deflated cubic (λ2, for the gap) and on the scatter's cubic; from
+# the upper bound the iterates decrease monotonically to the root.
 _STEPS_GAP = 8
 _STEPS_SCATTER = 8
+# At most this many Newton steps on the quartic (λ1) from sqrt(3)·|S|_F: a block stops
+# when all its frames have converged, after ~5-12 steps for well-fitting frames; a
+# mirror-image fit with a small eigen-gap (1e-4 .. 1e-8) needs up to ~30.
+_STEPS_TOP = 40
 
-
-# Frames per block of the kernel: the dozen passes over a block's (frames, leds, 3)
-# arrays then run in cache instead of main memory.
+# Frames per block of the kernel: the passes over a block's (frames, leds, 3) arrays
+# then run in cache instead of main memory.
 _BLOCK = 4096
+
+_HP = jax.lax.Precision.HIGHEST  # no reduced-precision matmuls (GPU float32)
 
 
 @jax.jit
 def _weighted_procrustes(model: Array, measured: Array, weights: Array) -> RigidFit:
     n = measured.shape[0]
-    if n <= _BLOCK:
-        return _fit_block(model, measured, weights)
-    nb = -(-n // _BLOCK)
-    pad = nb * _BLOCK - n
+    size = min(n, _BLOCK)
+    count = -(-n // size)
+    # Blocks cut from the inputs in place (no padded copy); the last one ends at the last
+    # frame and overlaps the one before it, whose frames it fits again.
+    starts = jnp.minimum(jnp.arange(count) * size, n - size)
 
-    def blocks(a):
-        a = jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1))
-        return a.reshape(nb, _BLOCK, *a.shape[1:])
+    def fit(start):
+        def cut(a):
+            return jax.lax.dynamic_slice_in_dim(a, start, size)
 
-    if model.ndim == 2:
-        out = jax.lax.map(lambda a: _fit_block(model, *a), (blocks(measured), blocks(weights)))
-    else:
-        out = jax.lax.map(
-            lambda a: _fit_block(*a), (blocks(model), blocks(measured), blocks(weights))
-        )
-    return jax.tree.map(lambda a: a.reshape(nb * _BLOCK, *a.shape[2:])[:n], out)
+        return _fit_block(model if model.ndim == 2 else cut(model), cut(measured), cut(weights))
+
+    out = jax.lax.map(fit, starts)
+    rest = n - (count - 1) * size  # frames of the last block not in the one before
+
+    def join(a):
+        if rest == size:
+            return a.reshape(n, *a.shape[2:])
+        return jnp.concatenate([a[:-1].reshape(-1, *a.shape[2:]), a[-1, size - rest :]])
+
+    return jax.tree.map(join, out)
 
 
 def _fit_block(model: Array, measured: Array, weights: Array) -> RigidFit:
     dtype = measured.dtype
-    tol = collinear_threshold(dtype)
-    n, m = weights.shape
     finite = jnp.all(jnp.isfinite(measured), axis=-1) & jnp.all(jnp.isfinite(model), axis=-1)
     used = (weights > 0) & jnp.isfinite(weights) & finite  # (frames, leds)
     # double-where: masked entries are made safe before any arithmetic.
     w = jnp.where(used, weights, 0.0)
+    y = jnp.where(used[..., None], measured, 0.0)
     n_used = jnp.sum(used, axis=1)
+    if model.ndim == 2:
+        (p_bar, y_bar, c, s), mean_square = _moments_shared(model, y, w)
+    else:
+        (p_bar, y_bar, c, s), mean_square = _moments_per_frame(model, y, w, used)
+    q, valid, condition = _horn_rotation(c, s, n_used)
+    # rotation entries as separate arrays: XLA fuses them into the translation
+    r = rotation_rows(*q)
+    t = [y_bar[a] - sum(r[a][b] * p_bar[b] for b in range(3)) for a in range(3)]
+    ms = mean_square(r, t)
+    # double-where: sqrt has an infinite derivative at a perfect fit.
+    rms = jnp.where(ms > 0, jnp.sqrt(jnp.where(ms > 0, ms, 1.0)), 0.0)
+    nan = jnp.array(jnp.nan, dtype)
+    return RigidFit(
+        jnp.where(valid[:, None], jnp.stack(q, axis=-1), nan),
+        jnp.where(valid[:, None], jnp.stack(t, axis=-1), nan),
+        jnp.where(valid, rms, nan),
+        n_used,
+        valid,
+        jax.lax.stop_gradient(condition),
+    )
+
+
+def _moments_shared(model, y, w):
+    """Weighted centred moments for one constellation `model` (leds, 3) shared by all
+    frames, as lists of `(frames,)` arrays, and the weighted mean square residual of a
+    pose (rotation rows `r`, translation `t`).
+
+    All moments are linear in the weights and in ``w · y``, so they are matrix products
+    with constant matrices built from the model: two GEMMs over all frames, the residuals
+    one more and a matrix-vector product. They are uncentred; the model is shifted to its
+    own centre first, and the measured points are centred by the first moment, so the
+    cancellation in ``Σ w p yᵀ - p̄ Σ w yᵀ`` costs a factor |y| / |y - ȳ| (~15 for a
+    0.1 m tool at 1.5 m): ~1e-14 in float64, and in float32 no more than the rounding of
+    the measured points themselves.
+    """
+    n, m, _ = y.shape
+    dtype = y.dtype
+    ok_m = jnp.all(jnp.isfinite(model), axis=-1)
+    p0 = jnp.where(ok_m[:, None], model, 0.0)
+    origin = jnp.sum(p0, axis=0) / jnp.maximum(jnp.sum(ok_m), 1)
+    p = jnp.where(ok_m[:, None], p0 - origin, 0.0)  # (leds, 3)
+    eye = jnp.eye(3, dtype=dtype)
+    # w @ [1 | p | p pᵀ]: zeroth, first and second model moments
+    pm = jnp.concatenate(
+        [jnp.ones((m, 1), dtype), p, (p[:, :, None] * p[:, None, :]).reshape(m, 9)], axis=1
+    )
+    mom_p = jnp.matmul(w, pm, precision=_HP)
+    # (w y)_flat @ K, K[(m, j'), j] = δ(j', j) and K[(m, j'), (i, j)] = p[m, i] δ(j', j):
+    # Σ_m w y_mj and Σ_m w p_mi y_mj
+    k = jnp.concatenate(
+        [jnp.tile(eye, (m, 1)), (eye[None, :, None, :] * p[:, None, :, None]).reshape(m * 3, 9)],
+        axis=1,
+    )
+    wy = (w[..., None] * y).reshape(n, m * 3)
+    mom_y = jnp.matmul(wy, k, precision=_HP)
+    wsum = mom_p[:, 0]
+    inv = 1.0 / jnp.where(wsum > 0, wsum, 1.0)
+    p_bar = [mom_p[:, 1 + a] * inv for a in range(3)]
+    y_bar = [mom_y[:, a] * inv for a in range(3)]
+    c = [[mom_p[:, 4 + 3 * a + b] * inv - p_bar[a] * p_bar[b] for b in range(3)] for a in range(3)]
+    s = [[mom_y[:, 3 + 3 * a + b] * inv - p_bar[a] * y_bar[b] for b in range(3)] for a in range(3)]
+    # [R_flat | t] @ Q, Q[(i, j), (m, i')] = p[m, j] δ(i, i') and Q[i, (m, i')] = δ(i, i'):
+    # R p_m + t for all LEDs
+    q_mat = jnp.concatenate(
+        [(eye[:, None, None, :] * p.T[None, :, :, None]).reshape(9, m * 3), jnp.tile(eye, (1, m))]
+    )
+    w3 = jnp.repeat(w, 3, axis=1)
+
+    def mean_square(r, t):
+        t = [t[a] + sum(r[a][b] * origin[b] for b in range(3)) for a in range(3)]
+        rt = jnp.stack([r[a][b] for a in range(3) for b in range(3)] + t, axis=-1)
+        res = y.reshape(n, m * 3) - jnp.matmul(rt, q_mat, precision=_HP)
+        return jnp.matmul(w3 * res * res, jnp.ones(m * 3, dtype), precision=_HP) * inv
+
+    p_bar = [p_bar[a] + origin[a] for a in range(3)]
+    return (p_bar, y_bar, c, s), mean_square
+
+
+def _moments_per_frame(model, y, w, used):
+    """Weighted centred moments for a constellation per frame, `model` (frames, leds, 3),
+    as lists of `(frames,)` arrays, and the weighted mean square residual of a pose."""
     wsum = jnp.sum(w, axis=1)
     wn = w / jnp.where(wsum > 0, wsum, 1.0)[:, None]
-    y = jnp.where(used[..., None], measured, 0.0)
-    if model.ndim == 2:
-        moments, rotated_model = _moments_shared(model, y, wn)
-    else:
-        moments, rotated_model = _moments_per_frame(model, y, wn, used)
-    p_bar, y_bar, c, s, g_meas = moments
-    # weighted model scatter C and cross-covariance S[a, b] = Σ w model_a measured_b
-    c = [[c[:, a, b] for b in range(3)] for a in range(3)]
-    s = [[s[:, a, b] for b in range(3)] for a in range(3)]
-    g_model = c[0][0] + c[1][1] + c[2][2]
+    p = jnp.where(used[..., None], model, 0.0)
+    p_bar = jnp.sum(wn[..., None] * p, axis=1)
+    y_bar = jnp.sum(wn[..., None] * y, axis=1)
+    pc = jnp.where(used[..., None], p - p_bar[:, None], 0.0)
+    yc = jnp.where(used[..., None], y - y_bar[:, None], 0.0)
+    wpc = wn[..., None] * pc
+    c = jnp.einsum("fmi,fmj->fij", wpc, pc, precision=_HP)
+    s = jnp.einsum("fmi,fmj->fij", wpc, yc, precision=_HP)
 
+    def mean_square(r, t):
+        r = jnp.stack([jnp.stack(row, axis=-1) for row in r], axis=-2)
+        res = y - jnp.einsum("fij,fmj->fmi", r, p, precision=_HP) - jnp.stack(t, axis=-1)[:, None]
+        return jnp.sum(wn * jnp.sum(jnp.where(used[..., None], res, 0.0) ** 2, axis=-1), axis=1)
+
+    moments = (
+        [p_bar[:, a] for a in range(3)],
+        [y_bar[:, a] for a in range(3)],
+        [[c[:, a, b] for b in range(3)] for a in range(3)],
+        [[s[:, a, b] for b in range(3)] for a in range(3)],
+    )
+    return moments, mean_square
+
+
+def _horn_rotation(c, s, n_used) -> tuple[list[Array], Array, Array]:
+    """Quaternion (w >= 0, as four arrays), validity and `condition` per frame from the
+    weighted model scatter `c` and cross-covariance `s` (3x3 nested lists of arrays)."""
+    dtype = c[0][0].dtype
+    tol = collinear_threshold(dtype)
     model_ratio = _second_to_first(jax.lax.stop_gradient(c))
-    # Scale S to O(1) (the eigenvector is scale-invariant). With this scale λ1 <= 1
-    # (Cauchy-Schwarz), the start of the Newton iteration.
-    scale = jnp.sqrt(g_model * g_meas)
+    # Scale S to unit Frobenius norm (the eigenvector is scale-invariant). The roots of
+    # N's trace-free quartic have squares summing to |N|_F² = -2 c2 (= 4 after scaling),
+    # so they are at most sqrt(-1.5 c2) (Laguerre-Samuelson): the start of Newton.
+    scale = jnp.sqrt(sum(s[a][b] * s[a][b] for a in range(3) for b in range(3)))
     ok_scale = scale > jnp.finfo(dtype).tiny
     pre = (n_used >= 3) & ok_scale & (model_ratio > tol)
     inv_scale = 1.0 / jnp.where(ok_scale, scale, 1.0)
@@ -186,15 +294,27 @@ def _fit_block(model: Array, measured: Array, weights: Array) -> RigidFit:
     c2 = -2.0 * sum(s[a][b] * s[a][b] for a in range(3) for b in range(3))
     c1 = -8.0 * _det3(s)
     c0 = _det4(horn)
-    frob = jnp.sqrt(-0.5 * c2)
-    lam = jax.lax.stop_gradient(jnp.minimum(jnp.where(pre, 1.0, 2.0), jnp.sqrt(3.0) * frob))
     sc2, sc1, sc0 = (jax.lax.stop_gradient(v) for v in (c2, c1, c0))
-    lam = jax.lax.fori_loop(
-        0,
-        _STEPS_TOP,
-        lambda _, x: x - _safe_div(_quartic(x, sc2, sc1, sc0), _quartic_slope(x, sc2, sc1)),
-        lam,
-    )
+
+    def newton(x):
+        return x - _safe_div(_quartic(x, sc2, sc1, sc0), _quartic_slope(x, sc2, sc1))
+
+    # Newton until every frame's step is below sqrt(eps) relative (quadratic convergence:
+    # one more step reaches the rounding level), then that step.
+    tol_step = float(np.sqrt(np.finfo(dtype).eps))
+
+    def going(state):
+        i, x, step = state
+        return (i < _STEPS_TOP) & jnp.any(jnp.abs(step) > tol_step * jnp.abs(x))
+
+    def step(state):
+        i, x, _ = state
+        x_new = newton(x)
+        return i + 1, x_new, x - x_new
+
+    start = jax.lax.stop_gradient(jnp.sqrt(-1.5 * c2))
+    _, lam, _ = jax.lax.while_loop(going, step, (0, start, jnp.full_like(start, jnp.inf)))
+    lam = newton(lam)
     # One more step outside stop_gradient: at the root it carries dλ = -∂P/∂N / P'(λ),
     # the exact implicit derivative.
     lam = lam - _safe_div(_quartic(lam, c2, c1, c0), _quartic_slope(lam, c2, c1))
@@ -216,94 +336,7 @@ def _fit_block(model: Array, measured: Array, weights: Array) -> RigidFit:
 
     q = _top_eigenvector(horn, lam)
     sign = jnp.where(q[0] < 0, -1.0, 1.0)  # convention w >= 0
-    q = [sign * qi for qi in q]
-    quat = jnp.stack(q, axis=-1)
-    # rotation entries as separate arrays: XLA fuses them into the translation and
-    # residual passes (a stacked (frames, 3, 3) matrix here costs ~2x the kernel on CPU)
-    r = rotation_rows(*q)
-    t = [y_bar[:, a] - sum(r[a][b] * p_bar[:, b] for b in range(3)) for a in range(3)]
-    r = jnp.stack([jnp.stack(row, axis=-1) for row in r], axis=-2)  # (frames, 3, 3)
-    pos = jnp.stack(t, axis=-1)
-    res = y - rotated_model(r) - pos[:, None]
-    ms = jnp.sum(wn * jnp.sum(jnp.where(used[..., None], res, 0.0) ** 2, axis=-1), axis=1)
-    # double-where: sqrt has an infinite derivative at a perfect fit.
-    rms = jnp.where(ms > 0, jnp.sqrt(jnp.where(ms > 0, ms, 1.0)), 0.0)
-    nan = jnp.array(jnp.nan, dtype)
-    return RigidFit(
-        jnp.where(valid[:, None], quat, nan),
-        jnp.where(valid[:, None], pos, nan),
-        jnp.where(valid, rms, nan),
-        n_used,
-        valid,
-        jax.lax.stop_gradient(condition),
-    )
-
-
-_HP = jax.lax.Precision.HIGHEST  # no reduced-precision matmuls (GPU float32)
-
-
-def _moments_shared(model, y, wn):
-    """Weighted moments for one constellation `model` (leds, 3) shared by all frames.
-
-    All moments are linear in the weights and in ``w · y``, so they are matrix products
-    with constant matrices built from the model: two GEMMs over all frames. They are
-    uncentred; the model is shifted to its own centre first, and the measured points are
-    centred by the first moment, so the cancellation in ``Σ w p yᵀ - p̄ Σ w yᵀ`` costs
-    a factor |y| / |y - ȳ| (~15 for a 0.1 m tool at 1.5 m): ~1e-14 in float64, and in
-    float32 no more than the rounding of the measured points themselves.
-    """
-    n, m, _ = y.shape
-    dtype = y.dtype
-    ok_m = jnp.all(jnp.isfinite(model), axis=-1)
-    p0 = jnp.where(ok_m[:, None], model, 0.0)
-    origin = jnp.sum(p0, axis=0) / jnp.maximum(jnp.sum(ok_m), 1)
-    p = jnp.where(ok_m[:, None], p0 - origin, 0.0)  # (leds, 3)
-    eye = jnp.eye(3, dtype=dtype)
-    # wn @ [p | p pᵀ]: first and second model moments
-    pm = jnp.concatenate([p, (p[:, :, None] * p[:, None, :]).reshape(m, 9)], axis=1)
-    mom_p = jnp.matmul(wn, pm, precision=_HP)
-    p_bar = mom_p[:, :3]
-    c = mom_p[:, 3:].reshape(n, 3, 3) - p_bar[:, :, None] * p_bar[:, None, :]
-    # (w y)_flat @ K, K[(m, j'), (i, j)] = p[m, i] δ(j', j) and K[(m, j'), j] = δ(j', j):
-    # Σ_m w p_mi y_mj and Σ_m w y_mj
-    k = jnp.concatenate(
-        [
-            (eye[None, :, None, :] * p[:, None, :, None]).reshape(m * 3, 9),
-            jnp.tile(eye, (m, 1)),
-        ],
-        axis=1,
-    )
-    wy = (wn[..., None] * y).reshape(n, m * 3)
-    mom_y = jnp.matmul(wy, k, precision=_HP)
-    y_bar = mom_y[:, 9:]
-    s = mom_y[:, :9].reshape(n, 3, 3) - p_bar[:, :, None] * y_bar[:, None, :]
-    g_meas = jnp.sum(wy.reshape(n, m, 3) * (y - y_bar[:, None]), axis=(1, 2))
-    # Q[(i, j), (m, i')] = p[m, j] δ(i, i'): (R p_m)_i for all LEDs = R_flat @ Q
-    q_mat = (eye[:, None, None, :] * p.T[None, :, :, None]).reshape(9, m * 3)
-
-    def rotated_model(r):  # R p_m (unshifted model) per frame and LED, (frames, leds, 3)
-        rp = jnp.matmul(r.reshape(n, 9), q_mat, precision=_HP).reshape(n, m, 3)
-        return rp + jnp.einsum("fij,j->fi", r, origin)[:, None]
-
-    return (p_bar + origin, y_bar, c, s, g_meas), rotated_model
-
-
-def _moments_per_frame(model, y, wn, used):
-    """Weighted centred moments for a constellation per frame, `model` (frames, leds, 3)."""
-    p = jnp.where(used[..., None], model, 0.0)
-    p_bar = jnp.sum(wn[..., None] * p, axis=1)
-    y_bar = jnp.sum(wn[..., None] * y, axis=1)
-    pc = jnp.where(used[..., None], p - p_bar[:, None], 0.0)
-    yc = jnp.where(used[..., None], y - y_bar[:, None], 0.0)
-    wpc = wn[..., None] * pc
-    c = jnp.einsum("fmi,fmj->fij", wpc, pc, precision=_HP)
-    s = jnp.einsum("fmi,fmj->fij", wpc, yc, precision=_HP)
-    g_meas = jnp.sum(wn * jnp.sum(yc * yc, axis=-1), axis=1)
-
-    def rotated_model(r):
-        return jnp.einsum("fij,fmj->fmi", r, p, precision=_HP)
-
-    return (p_bar, y_bar, c, s, g_meas), rotated_model
+    return [sign * qi for qi in q], valid, condition
 
 
 def _safe_div(num: Array, den: Array) -> Array:

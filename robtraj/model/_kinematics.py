@@ -28,6 +28,9 @@ class RobotModel(eqx.Module):
       DH frame.
     - `link_mass`: `(joints,)` [kg], mass of link i, lumped at the midpoint between the
       origins of DH frames i-1 and i; `payload_mass` [kg] lumped at the flange.
+    - `joint_limits`: `(joints, 2)` [rad] each joint's range ``[lower, upper]`` in the
+      DH joint angle q (−inf / +inf where a side has no limit), or None where the
+      limits are not known (every joint unlimited).
     """
 
     dh: Float[Array, "joints 4"]
@@ -35,25 +38,31 @@ class RobotModel(eqx.Module):
     link_mass: Float[Array, " joints"]
     payload_mass: Float[Array, ""]
     name: str = eqx.field(static=True, default="custom")
+    joint_limits: Float[Array, "joints 2"] | None = None
 
     @property
     def n_joints(self) -> int:
         return self.dh.shape[0]
 
 
-def _robot(name, dh, flange_rz, masses, payload) -> RobotModel:
+def _robot(name, dh, flange_rz, masses, payload, limits_deg=None) -> RobotModel:
     last_from_flange = jaxlie.SE3.from_rotation(jaxlie.SO3.from_z_radians(flange_rz))
+    limits = None if limits_deg is None else jnp.asarray(np.deg2rad(limits_deg), jnp.float64)
     return RobotModel(
         dh=jnp.asarray(dh, jnp.float64),
         last_from_flange=last_from_flange.wxyz_xyz.astype(jnp.float64),
         link_mass=jnp.asarray(masses, jnp.float64),
         payload_mass=jnp.asarray(payload, jnp.float64),
         name=name,
+        joint_limits=limits,
     )
 
 
 def abb_irb2400_16() -> RobotModel:
-    """ABB IRB2400-16 (ROS-Industrial DH; tool0 = last DH frame turned by π about z)."""
+    """ABB IRB2400-16 (ROS-Industrial DH; tool0 = last DH frame turned by π about z).
+
+    Joint limits: the data sheet's axis ranges (±180°, −100…110°, −60…65°, ±200°,
+    ±120°, ±400°), in the DH joint angles (ROS-Industrial's URDF carries the same)."""
     dh = [
         [0.615, 0.100, -_PI / 2, 0.0],
         [0.0, 0.705, 0.0, -_PI / 2],
@@ -62,11 +71,14 @@ def abb_irb2400_16() -> RobotModel:
         [0.0, 0.0, -_PI / 2, 0.0],
         [0.085, 0.0, 0.0, 0.0],
     ]
-    return _robot("abb_irb2400_16", dh, _PI, [90.0, 45.0, 35.0, 12.0, 6.0, 1.0], 2.5)
+    limits = [[-180, 180], [-100, 110], [-60, 65], [-200, 200], [-120, 120], [-400, 400]]
+    masses = [90.0, 45.0, 35.0, 12.0, 6.0, 1.0]
+    return _robot("abb_irb2400_16", dh, _PI, masses, 2.5, limits)
 
 
 def ur10() -> RobotModel:
-    """Universal Robots UR10 (manufacturer's published standard-DH parameters)."""
+    """Universal Robots UR10 (manufacturer's published standard-DH parameters); joint
+    limits ±360° on every joint (the data sheet's working range)."""
     dh = [
         [0.1273, 0.0, _PI / 2, 0.0],
         [0.0, -0.612, 0.0, 0.0],
@@ -75,7 +87,7 @@ def ur10() -> RobotModel:
         [0.1157, 0.0, -_PI / 2, 0.0],
         [0.0922, 0.0, 0.0, 0.0],
     ]
-    return _robot("ur10", dh, 0.0, [7.1, 12.7, 4.3, 2.0, 2.0, 0.4], 1.0)
+    return _robot("ur10", dh, 0.0, [7.1, 12.7, 4.3, 2.0, 2.0, 0.4], 1.0, [[-360, 360]] * 6)
 
 
 BUILTIN_ROBOTS = {"abb_irb2400_16": abb_irb2400_16, "ur10": ur10}
@@ -85,9 +97,10 @@ def robot_from_log(log: RobotLog) -> RobotModel:
     """The robot of a recording's robot log (`/robot`).
 
     A `dh` table gives a custom robot: its `flange` (the flange in the last DH frame,
-    identity if None), `link_mass` (5 kg per link if None) and `payload_mass` (1 kg if
-    None). Otherwise the named built-in `model`, with its flange, link masses and
-    payload replaced by the log's where given.
+    identity if None), `link_mass` (5 kg per link if None), `payload_mass` (1 kg if
+    None) and `joint_limits` (unlimited if None). Otherwise the named built-in `model`,
+    with its flange, link masses, payload and joint limits replaced by the log's where
+    given.
     """
     dh, model, flange, link_mass = log.dh, log.model, log.flange, log.link_mass
     if dh is not None:
@@ -118,6 +131,13 @@ def robot_from_log(log: RobotLog) -> RobotModel:
     if log.payload_mass is not None:
         payload = jnp.asarray(float(log.payload_mass), jnp.float64)
         robot = eqx.tree_at(lambda r: r.payload_mass, robot, payload)
+    if log.joint_limits is not None:
+        limits = jnp.asarray(log.joint_limits, jnp.float64)
+        if limits.shape != (robot.n_joints, 2):
+            raise UserError(
+                f"/robot/joint_limits has shape {limits.shape}, expected ({robot.n_joints}, 2)"
+            )
+        robot = eqx.tree_at(lambda r: r.joint_limits, robot, limits, is_leaf=lambda x: x is None)
     return robot
 
 

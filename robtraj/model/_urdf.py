@@ -4,7 +4,9 @@ Link ``link_i`` is DH frame i−1 turned by joint i; joint i's origin is the pre
 row's transform ``Rz(θ₀)·Tz(d)·Tx(a)·Rx(α)`` (joint 1 at the base), its axis z; the
 fixed joint ``flange`` carries the last row and `last_from_flange` to link ``tool0``.
 Each link's mass sits where the lumped-mass model puts it (the middle of its DH link);
-the payload is the mass of ``tool0``.
+the payload is the mass of ``tool0``. A joint with limits is ``revolute`` with them as
+``<limit lower upper>`` (an open side as ``inf``), one without (or a robot whose limits
+are not known) ``continuous``.
 """
 
 from __future__ import annotations
@@ -50,6 +52,14 @@ def _inertial(mass: float, centre: np.ndarray) -> str:
     )
 
 
+def _joint_type_and_limit(limits: np.ndarray | None, i: int) -> tuple[str, str]:
+    """URDF joint type and ``<limit>`` element of joint `i` for `limits` `(J, 2)` [rad]."""
+    if limits is None or not np.isfinite(limits[i]).any():
+        return "continuous", '<limit effort="1000" velocity="3"/>'
+    lower, upper = (repr(float(v)) for v in limits[i])
+    return "revolute", f'<limit lower="{lower}" upper="{upper}" effort="1000" velocity="3"/>'
+
+
 def urdf_text(
     robot: RobotModel,
     name: str | None = None,
@@ -68,6 +78,7 @@ def urdf_text(
     dh = np.asarray(robot.dh, np.float64)
     beta = np.zeros(dh.shape[0]) if tilt is None else np.asarray(tilt, np.float64)
     masses = np.asarray(robot.link_mass, np.float64)
+    limits = None if robot.joint_limits is None else np.asarray(robot.joint_limits, np.float64)
     flange = np.asarray(robot.last_from_flange, np.float64)  # wxyz_xyz
     last_from_flange = np.eye(4)
     last_from_flange[:3, :3] = Rotation.from_quat(flange[[1, 2, 3, 0]]).as_matrix()
@@ -81,10 +92,10 @@ def urdf_text(
         centre = 0.5 * dh_link_matrix(dh[i])[:3, 3]
         lines.append(f'  <link name="{link}">{_inertial(masses[i], centre)}</link>')
         origin = np.eye(4) if i == 0 else dh_link_matrix(dh[i - 1], beta[i - 1])
+        kind, limit = _joint_type_and_limit(limits, i)
         lines.append(
-            f'  <joint name="joint_{i + 1}" type="revolute"><parent link="{parent}"/>'
-            f'<child link="{link}"/>{_origin(origin)}<axis xyz="0 0 1"/>'
-            '<limit lower="-6.2832" upper="6.2832" effort="1000" velocity="3"/></joint>'
+            f'  <joint name="joint_{i + 1}" type="{kind}"><parent link="{parent}"/>'
+            f'<child link="{link}"/>{_origin(origin)}<axis xyz="0 0 1"/>{limit}</joint>'
         )
         parent = link
     tool0 = dh_link_matrix(dh[-1], beta[-1]) @ last_from_flange

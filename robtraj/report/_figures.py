@@ -291,3 +291,27 @@ def workspace_error_figure(
         fig.colorbar(sc, ax=axes[row].tolist(), label=label)
     axes[0, 0].set_title(title)
     return _save(fig, path)
+
+
+def compensation_figure(
+    path: str | os.PathLike,
+    names: list[str],
+    now: np.ndarray,
+    after: np.ndarray,
+    sigma: np.ndarray,
+) -> Path:
+    """AP per test pose `names`: measured now and predicted after compensation `(P,)`
+    [m] (shown in µm, log scale), the prediction with its ±2σ `(P,)` [m]."""
+    fig, ax = plt.subplots(figsize=(7.5, 4.2), layout="constrained")
+    x = np.arange(len(names))
+    w = 0.38
+    ax.bar(x - w / 2, now * 1e6, w, label="measured now", color="tab:red")
+    ax.bar(x + w / 2, after * 1e6, w, label="after compensation (predicted)", color="tab:green")
+    ax.errorbar(x + w / 2, after * 1e6, yerr=2 * sigma * 1e6, fmt="none", ecolor="k",
+                capsize=4, label="±2σ of the calibration")  # fmt: skip
+    ax.set_yscale("log")
+    ax.set_xticks(x, names)
+    ax.set_ylabel("AP [µm]")
+    ax.set_title("Pose accuracy AP: measured and predicted after compensation")
+    fig.legend(loc="outside lower center", ncol=3, fontsize=8)
+    return _save(fig, path)

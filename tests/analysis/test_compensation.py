@@ -1,7 +1,9 @@
 """`robtraj.analysis.compensation`: joint angles that put the calibrated model's TCP on each
 target (forward check on 1000 targets along a walk through the workspace), commands the
-nominal model turns into those joints, and targets out of reach refused by name."""
+nominal model turns into those joints, and targets out of reach or beyond a joint limit
+refused by name."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -99,3 +101,53 @@ def test_targets_out_of_reach_are_refused_by_name():
             q_walk[0],
             names=[f"P{i + 1}" for i in range(5)],
         )
+
+
+def test_targets_out_of_reach_can_be_left_out_and_the_rest_is_unchanged():
+    """`skip_unreachable`: the far target is listed and NaN, the others are compensated
+    as without it (given the controller's own joints, each target on its own)."""
+    rng = np.random.default_rng(1)
+    program, q_walk = _walk(rng, n=5)
+    calib = _calibration(rng)
+    far = program.targets.position.copy()
+    far[3] = [4.0, 0.0, 1.0]
+    bad = Program(Pose(far, program.targets.quaternion_wxyz), program.motion, program.speed)
+    got = compensate(
+        bad, ROBOT, calib, NOMINAL_TCP, q_walk[0], nominal_joints=q_walk, skip_unreachable=True
+    )
+    ref = compensate(program, ROBOT, calib, NOMINAL_TCP, q_walk[0], nominal_joints=q_walk)
+    assert got.unreachable == (3,) and np.all(np.isnan(got.joints[3]))
+    keep = [0, 1, 2, 4]
+    np.testing.assert_allclose(got.joints[keep], ref.joints[keep], rtol=0, atol=1e-12)
+    assert np.all(got.error_after_m[keep] < 1e-6)
+
+
+def _with_limit(joint: int, upper: float):
+    """`ROBOT` with joint `joint`'s upper limit at `upper` [rad]."""
+    limits = np.asarray(ROBOT.joint_limits).copy()
+    limits[joint, 1] = upper
+    return eqx.tree_at(lambda r: r.joint_limits, ROBOT, jnp.asarray(limits))
+
+
+@pytest.mark.parametrize("solution", ["nominal", "compensated"])
+def test_a_target_beyond_a_joint_limit_is_refused_by_name(solution):
+    """A joint's upper limit just below the largest angle of it that one target needs:
+    in its nominal solution, or in its compensated joints where they go beyond every
+    nominal solution's."""
+    rng = np.random.default_rng(1)
+    program, q_walk = _walk(rng, n=8)
+    calib, names = _calibration(rng), [f"P{i + 1}" for i in range(8)]
+    free = compensate(program, ROBOT, calib, NOMINAL_TCP, q_walk[0], names=names)
+    np.testing.assert_allclose(free.nominal_joints, q_walk, atol=1e-9)
+    chosen, other = (free.nominal_joints, free.joints)[:: 1 if solution == "nominal" else -1]
+    # a joint that goes furthest in the chosen solution, the limit below that angle alone
+    joint = int(np.argmax(chosen.max(0) - other.max(0)))
+    worst = int(np.argmax(chosen[:, joint]))
+    second = np.sort(np.concatenate([chosen[:, joint], other[:, joint]]))[-2]
+    assert chosen[worst, joint] > other[:, joint].max()
+    limit = 0.5 * (chosen[worst, joint] + second)
+    with pytest.raises(UserError) as e:
+        compensate(program, _with_limit(joint, limit), calib, NOMINAL_TCP, q_walk[0], names=names)
+    message = str(e.value)
+    assert f"the {solution} joints of P{worst + 1} put joint {joint + 1} at" in message, message
+    assert f"{np.degrees(limit):.2f}°]" in message and "\n" not in message

@@ -20,8 +20,16 @@ import pytest
 from robtraj import write_recording
 from robtraj._errors import UserError
 from robtraj.analysis.discrepancy import discover
+from robtraj.calibration_file import load_calibration
 from robtraj.cli import main
-from robtraj.model import amplitude_phase, dictionary, register_effect, term, unregister_effect
+from robtraj.model import (
+    amplitude_phase,
+    dictionary,
+    effect_component_names,
+    register_effect,
+    term,
+    unregister_effect,
+)
 from robtraj.sim import PeriodicJointError, SightLineBias, VelocityDeadbandError, simulate
 
 #: hidden effect → (its unmodelled physics at amplitude a, the term that names it, a)
@@ -213,7 +221,9 @@ def test_cli_reports_the_term_in_words_json_and_figure(tmp_path, capsys):
     path = tmp_path / "rec.h5"
     write_recording(_recording([HIDDEN["2 cycles/rev, joint 1"][0](1e-3)]), path)
     out, report = tmp_path / "disc.json", tmp_path / "report"
-    assert main(["discrepancy", str(path), "--json", str(out), "--report", str(report)]) == 0
+    named = tmp_path / "named.json"
+    argv = ["discrepancy", str(path), "--json", str(out), "--report", str(report)]
+    assert main([*argv, "--calibration-out", str(named)]) == 0
     text = capsys.readouterr().out
     assert "joint 1 angle error" in text and "sin(2·q1" in text, text
     doc = json.loads(out.read_text())
@@ -222,3 +232,42 @@ def test_cli_reports_the_term_in_words_json_and_figure(tmp_path, capsys):
     assert {"variable", "function", "parameters", "words", "acts"} <= set(step["term"])
     assert step["term"]["variable"] == "q1"
     assert (report / "discrepancy_terms.png").stat().st_size > 10_000
+    # the named model is a calibration: its effects are the final model's, with σ
+    calib = load_calibration(named)
+    assert (
+        calib.provenance["named"] == doc["named"] and calib.provenance["command"] == "discrepancy"
+    )
+    for name, p in step["parameters"].items():
+        assert calib.sigma[name] == pytest.approx(p["sigma"], rel=1e-9)
+    values = calib.effects["joint1_harmonic2"]
+    by_name = dict(zip(effect_component_names("joint1_harmonic2", (len(values),)), values))
+    for name, p in step["parameters"].items():
+        assert by_name[name] == pytest.approx(p["value"], rel=1e-12)
+
+
+def test_a_periodic_joint_error_of_many_harmonics_is_named_as_a_joint_angle_map():
+    """Joint 2's encoder off by five harmonics (5–23 cycles/rev, 0.08–0.2 mrad each):
+    beyond the dictionary's 1–4 cycles/rev, so the library and dictionary name nothing
+    and leave structure against q2; the maps offered then (`maps_step`) name joint 2's
+    angle error map alone, the gap falls below its floor, no structure is left, and the
+    map follows the hidden error at the knots q2 reached within 3 posterior σ plus its
+    interpolation bound at ≥ 90 % of them."""
+    from robtraj.model import effect_component_names, map_active
+
+    harmonics = ((5, 2e-4), (9, 1.5e-4), (13, 1e-4), (17, 1e-4), (23, 8e-5))
+    hidden = [PeriodicJointError(2, c, a, 0.3 * k) for k, (c, a) in enumerate(harmonics)]
+    rec = _recording(hidden)
+    res = discover(rec)
+    assert res.named == ["joint2_map"], res.named
+    assert res.gap_after_m <= res.gap_floor_m and not res.unexplained
+    c = np.asarray(res.calibration.effects["joint2_map"], float)
+    knots = np.unique(map_active(np.asarray(rec.robot.joints)[:, 1])[0])
+    angle = knots * 2 * np.pi / c.size
+    truth = sum(a * np.sin(n * angle + 0.3 * k) for k, (n, a) in enumerate(harmonics))
+    sigma = res.calibration.sigma
+    names = effect_component_names("joint2_map", (c.size,))
+    s = np.array([sigma[names[k]] for k in knots])
+    h = 2 * np.pi / c.size
+    bound = sum(a * (h * n) ** 2 / 8 for n, a in harmonics)
+    err = np.abs(c[knots] - truth)
+    assert np.mean(err <= 3 * s + bound) >= 0.9, (np.median(err), np.median(s), bound)

@@ -49,7 +49,7 @@ def test_gap_floor_is_two_standard_errors_of_the_gap_of_pure_noise():
     error) in ~16 % — a floor neither vacuous nor loose."""
     from types import SimpleNamespace
 
-    from robtraj.analysis.discrepancy import _gap, _gap_floor
+    from robtraj.analysis._residual_stats import gap as _gap, gap_floor as _gap_floor
 
     rng = np.random.default_rng(0)
     sigma, trials = 40e-6, 400

@@ -549,65 +549,6 @@ def test_series_a_and_b_agree_within_their_robust_sigma(series):
     assert agree(a.sigma_model, b.sigma_model) < 0.9
 
 
-def test_cross_series_discrepancy_from_the_command_line(tmp_path, capsys):
-    """`robtraj import` → `robtraj discrepancy A.h5 --validate-on B.h5`: the product runs the
-    pose workflow on imported recordings (200 poses of each; the workflow itself is tested
-    on 500 poses above): what it prints is what it writes, with the maps in words and
-    their figure."""
-    import json
-    import sys
-
-    from robtraj.analysis import real_data as rd
-    from robtraj.cli import main
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cli"))
-    from cli_helpers import assert_one_line_error, run_cli
-
-    recs = {}
-    for key, name in (("A", "measurements_grid"), ("B", "measurements_joint_configurations")):
-        lines = (DATA / f"Series_{key}" / f"{name}.csv").read_text().splitlines(keepends=True)
-        keep = np.linspace(0, len(lines) - 2, 200).round().astype(int) + 1
-        src = tmp_path / f"{key}.csv"
-        src.write_text("".join([lines[0], *(lines[i] for i in keep)]))
-        recs[key] = tmp_path / f"{key}.h5"
-        assert main(["import", str(src), "-o", str(recs[key]), "--preset", "ipa-ur10"]) == 0
-    out = tmp_path / "wf.json"
-    figs = tmp_path / "figs"
-    code, stdout, _ = run_cli(
-        capsys,
-        "discrepancy",
-        recs["A"],
-        "--validate-on",
-        recs["B"],
-        "--json",
-        out,
-        "--report",
-        figs,
-    )
-    assert code == 0 and "| model |" in stdout
-    doc = json.loads(out.read_text())
-    assert doc["series"] == ["A", "B"] and "nominal rigid" in {r["model"] for r in doc["table"]}
-    assert "cross-validation" in doc["naming"]
-    for step in doc["steps"]:
-        assert f"+ {step['effect']} (round {step['round']})" in stdout
-        for line in step.get("term", {}).get("words", []):
-            assert line in stdout
-    for r in doc["rejected"]:
-        assert f"not named: {r['effect']}" in stdout
-    assert len(doc["candidates"]) >= len(rd.CANDIDATES)
-    for key, named in doc["named"].items():
-        if "joint_map" in named:
-            assert (figs / f"joint_maps_{key}.png").is_file()
-    # an LED recording has no poses to validate on
-    from robtraj import write_recording
-    from robtraj.sim import simulate
-
-    led = tmp_path / "led.h5"
-    write_recording(simulate("paper", duration=2.0, rate=50.0), led)
-    code, _, err = run_cli(capsys, "discrepancy", recs["A"], "--validate-on", led)
-    assert_one_line_error(code, err, "pose recordings")
-
-
 @pytest.mark.exhaustive
 def test_full_data_figures():
     """All poses (about 4 min): each series' named model predicts the other within the

@@ -2,14 +2,20 @@
 link length and joint offset errors is calibrated; `compensate` corrects its ISO cube
 program; the same robot runs the corrected program (`simulate --commanded`) and
 `iso9283` shows what is left: exactly the cube's injected approach and drift errors,
-which no model of the robot describes."""
+which no model of the robot describes. A target beyond the recorded robot's joint
+limits is refused by name."""
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 from cli_helpers import assert_one_line_error, run_cli
 
+from robtraj import read_recording, write_recording
+from robtraj.analysis.compensation import compensate
+from robtraj.calibration_file import load_calibration
+from robtraj.model import robot_from_log
 from robtraj.sim import iso_cube_truth
 
 DURATION, RATE = 120.0, 50.0
@@ -78,3 +84,82 @@ def test_a_calibration_of_another_robot_is_refused(capsys, loop):
     )
     assert_one_line_error(code, err, "another robot")
     assert not out.exists()
+
+
+def test_a_target_beyond_a_joint_limit_is_refused_by_name(capsys, loop):
+    """The ISO cube recording with a joint limit in its `/robot` that one of its poses
+    needs to pass: refused, the first target that needs it and the joint named, nothing
+    written."""
+    tmp = loop[0]
+    rec = read_recording(tmp / "iso.h5")
+    robot = robot_from_log(rec.robot)
+    res = compensate(
+        rec.program,
+        robot,
+        load_calibration(tmp / "calib.json"),
+        rec.tool.flange_from_tool,
+        rec.robot.joints[0],
+    )
+    # the upper limit of one joint between its largest angle (several visits of a pose
+    # share it) and the next: the first target that needs more is refused
+    reach = np.maximum(res.nominal_joints, res.joints)
+    below = [np.max(q[q < q.max() - 1e-6]) for q in reach.T]
+    joint = int(np.argmax(reach.max(0) - below))
+    limits = np.asarray(robot.joint_limits).copy()
+    limits[joint, 1] = 0.5 * (reach[:, joint].max() + below[joint])
+    worst = int(np.flatnonzero(reach[:, joint] > limits[joint, 1])[0])
+    limited = dataclasses.replace(rec, robot=dataclasses.replace(rec.robot, joint_limits=limits))
+    path = write_recording(limited, tmp / "limited.h5")
+    out = tmp / "never_limited.csv"
+    code, _, err = run_cli(
+        capsys, "compensate", path, "--calibration", tmp / "calib.json", "-o", out
+    )
+    assert_one_line_error(code, err, f"target {worst + 1} put joint {joint + 1} at", "joint limits")
+    assert not out.exists()
+
+
+def test_the_predicted_accuracy_after_compensation_is_what_compensation_gives(loop):
+    """From the uncompensated recording and its calibration alone, the AP vector each
+    pose will have after compensation (`accuracy_after_compensation`) is the one the
+    compensated run measures, within `TOLERANCE` per component; the AP it starts from is
+    the measured one, and the stated σ is of the size of the calibration's TCP error
+    (a few µm, > 0)."""
+    from robtraj.analysis import accuracy_after_compensation
+    from robtraj.cli._iso9283 import iso_of
+    from robtraj.estimate import base_frame_poses
+
+    tmp, before, after = loop
+    rec = read_recording(tmp / "iso.h5")
+    calib = load_calibration(tmp / "calib.json")
+    iso = iso_of(rec, base_frame_poses(rec, calib))
+    pred = accuracy_after_compensation(rec, calib, iso)
+    for k, name in enumerate(pred.names):
+        now = np.array([before[name][f"AP{c}_mm"] for c in "xyz"]) * 1e-3
+        np.testing.assert_allclose(pred.error_now[k], now, atol=1e-9)
+        got = np.array([after[name][f"AP{c}_mm"] for c in "xyz"]) * 1e-3
+        assert np.all(np.abs(pred.error_after[k] - got) < TOLERANCE), (
+            name,
+            pred.error_after[k],
+            got,
+        )
+        assert 0 < pred.sigma_after[k] < 20e-6
+
+
+def test_the_report_shows_the_accuracy_after_compensation(loop):
+    """The report's section (`compensation_part`): its figure, its table of AP now and
+    predicted per pose with σ, and the summary's worst predicted AP."""
+    from robtraj.cli._iso9283 import iso_of
+    from robtraj.estimate import base_frame_poses
+    from robtraj.report._compensation_section import compensation_part
+
+    tmp = loop[0]
+    rec = read_recording(tmp / "iso.h5")
+    calib = load_calibration(tmp / "calib.json")
+    part = compensation_part(tmp, rec, calib, iso_of(rec, base_frame_poses(rec, calib)))
+    assert part.section.title == "Accuracy after compensation (predicted)"
+    assert (tmp / "compensation.png").stat().st_size > 10_000
+    rows = part.section.tables[0].rows
+    assert [r[0] for r in rows] == ["P1", "P2", "P3", "P4", "P5", "P6"]
+    assert all(r[2] < 0.1 * r[1] and 0 < r[3] < 0.02 for r in rows)  # mm
+    ((label, value),) = part.facts
+    assert label.startswith("AP after compensation, predicted, worst")

@@ -116,3 +116,34 @@ def test_a_joint_angle_error_map_from_simulate_to_calibrate_and_evaluate(tmp_pat
     sigma = np.sqrt(np.diag(np.asarray(doc["covariance"]["matrix"]))[idx])
     assert np.all(np.abs(c[knots] - value) <= 3 * sigma + 1e-12), (c[knots], sigma)
     assert main(["evaluate", str(rec), "--calibration", str(out)]) == 0
+
+
+def test_calibrate_starts_from_a_calibration_and_holds_its_effects(recording, tmp_path, capsys):
+    """`calibrate --init CALIB.json`: the start's effects not in --estimate are held at
+    its values (here a joint offset the recording does not carry, so the fit would move
+    it), the provenance names the start; a start of another robot is one line, exit 2."""
+    import numpy as np
+
+    first = tmp_path / "first.json"
+    assert main(["calibrate", str(recording), "-o", str(first), "--estimate", "joint_offset"]) == 0
+    doc = json.loads(first.read_text())
+    held = np.asarray(doc["effects"]["joint_offset"]) + np.array([0, 2e-4, 0, 0, 0, 0])
+    doc["effects"]["joint_offset"] = held.tolist()
+    start = tmp_path / "start.json"
+    start.write_text(json.dumps(doc))
+    out = tmp_path / "out.json"
+    assert main(["calibrate", str(recording), "-o", str(out), "--init", str(start)]) == 0
+    res = json.loads(out.read_text())
+    np.testing.assert_allclose(res["effects"]["joint_offset"], held, rtol=0, atol=1e-15)
+    assert res["provenance"] == {
+        "command": "calibrate",
+        "init": str(start),
+        "init_provenance": {},
+    }
+    capsys.readouterr()
+    doc["robot"] = {"model": "ur10"}
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps(doc))
+    code = main(["calibrate", str(recording), "-o", str(tmp_path / "x.json"), "--init", str(other)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "calibrated robot 'ur10'" in err[0], err

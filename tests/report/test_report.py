@@ -20,8 +20,9 @@ from robtraj.report import (
     visibility_figure,
     write_report,
 )
+from robtraj.report._calibration_section import calibration_tables
 from robtraj.report._html import _cell
-from robtraj.report._recording_report import calibration_tables, static_pose_errors
+from robtraj.report._static_pose_section import static_pose_errors
 from robtraj.report._words import column_label
 
 

@@ -140,7 +140,9 @@ def test_demo_report(demo):
     assert "the standard asks for 30" in text  # 3 cycles per pose in 30 s
     assert "Left out" not in text
     assert "Noise of the recording" in text  # the noise model, figure and table
-    assert len(lay["images"]) == 6
+    # the accuracy predicted after compensation, without σ (no covariance)
+    assert "Accuracy after compensation (predicted)" in text
+    assert len(lay["images"]) == 7
 
 
 @needs_chromium
