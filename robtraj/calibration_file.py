@@ -244,22 +244,31 @@ def load_calibration(path: str | Path):
 
 def check_robot(calib, rec, name: str = "CALIB.json") -> None:
     """`UserError` when `rec` (a `Recording`) logs another robot model than the one
-    `calib` calibrated: another joint count, DH table or flange (1e-9 m/rad). A
-    calibration that does not name its robot (an older CALIB.json) is not checked."""
+    `calib` calibrated (`check_robot_model`). A calibration that does not name its
+    robot (an older CALIB.json) is not checked."""
     if not calib.robot or rec.robot is None:
         return
-    from .importers import robot_description
     from .model import robot_from_log
 
+    check_robot_model(calib, robot_from_log(rec.robot), name, "the recording")
+
+
+def check_robot_model(calib, robot, name: str = "CALIB.json", whose: str = "the program") -> None:
+    """`UserError` when `robot` (a `RobotModel`, `whose` it is) is another robot model
+    than the one `calib` calibrated: another joint count, DH table or flange (1e-9
+    m/rad); not checked where `calib` does not name its robot."""
+    if not calib.robot:
+        return
+    from .importers import robot_description
+
     ours = robot_description(calib.robot, f"{name}: robot").robot_model()
-    theirs = robot_from_log(rec.robot)
-    same = ours.dh.shape == theirs.dh.shape and all(
+    same = ours.dh.shape == robot.dh.shape and all(
         np.allclose(np.asarray(a), np.asarray(b), rtol=0.0, atol=1e-9)
-        for a, b in ((ours.dh, theirs.dh), (ours.last_from_flange, theirs.last_from_flange))
+        for a, b in ((ours.dh, robot.dh), (ours.last_from_flange, robot.last_from_flange))
     )
     if not same:
         raise UserError(
-            f"{name} calibrated robot {ours.name!r} ({ours.n_joints} joints); the recording "
-            f"logs {theirs.name!r} ({theirs.n_joints} joints) with another DH table or "
-            "flange: a calibration holds only for the robot model it was made on"
+            f"{name} calibrated robot {ours.name!r} ({ours.n_joints} joints); {whose} "
+            f"uses {robot.name!r} ({robot.n_joints} joints), another robot (DH table or "
+            "flange): a calibration holds only for the robot model it was made on"
         )

@@ -140,14 +140,12 @@ def _effect_values(fit: PoseFit, named: Sequence[str]) -> dict[str, Any]:
 def _estimated_effects(fit: PoseFit, named: Sequence[str]) -> tuple[str, ...]:
     """Effect names (library fields, dictionary terms) of the `named` pose-fit specs; a
     map only where the fit estimated any of its knots."""
+    fitted = [MAP_TERMS[j - 1] for j in sorted(fit.maps())]
     out: list[str] = []
     for spec in named:
         block, _ = parse_effect_spec(spec)
         if block == "joint_map":
-            maps = fit.maps()
-            terms = [MAP_TERMS[j - 1] for j in sorted(maps)]
-            wanted = set(_map_terms(spec))
-            out += [t for t in terms if t in wanted]
+            out += [t for t in fitted if t in _map_terms(spec)]
         elif block == "joint_harmonic":
             out.append(spec)
         else:
@@ -257,8 +255,8 @@ def pose_prediction(
 
 def named_calibration(result, rec: Recording, source: str) -> CalibrationResult:
     """The final model of a discrepancy run on the LED recording `rec` (read from
-    `source`; `discover`'s `DiscrepancyResult`) as a calibration: its calibration with the provenance of the naming
-    and, for any map it named, the map's knots and σ."""
+    `source`; `discover`'s `DiscrepancyResult`) as a calibration: its calibration with
+    the provenance of the naming and, for any map it named, the map's knots and σ."""
     calib = result.calibration
     return dataclasses.replace(
         calib,

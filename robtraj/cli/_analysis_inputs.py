@@ -73,11 +73,11 @@ def load(args: argparse.Namespace, *, need_program: bool = True):
     check_same_setup(rec, calib, bf, args.recording)
     name = str(args.calibration or "the calibration")
     warn_undetermined(calib, name, "the result depends")
-    args.warnings = warn_outside_maps(calib, _frame_joints(rec), name)
+    args.warnings = warn_outside_maps(calib, frame_joints(rec), name)
     return rec, calib, bf
 
 
-def _frame_joints(rec) -> np.ndarray:
+def frame_joints(rec) -> np.ndarray:
     """The logged joint angles `(N, joints)` [rad] (none without a robot log)."""
     return np.zeros((0, 0)) if rec.robot is None else np.asarray(rec.robot.joints, float)
 

@@ -87,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _inputs(args, calib):
     """(program, labels, robot model, controller's TCP, first joints) from PROGRAM."""
+    from ..calibration_file import check_robot_model
     from ..importers import load_constellation, read_program
     from ..model import robot_from_log
     from ..recording import read_recording
@@ -120,20 +121,11 @@ def _inputs(args, calib):
         raise UserError(f"{path}: the tool has no nominal flange_from_tool (the controller's TCP)")
     if np.shape(q_start) != (robot.n_joints,):
         raise UserError(f"--start-joints needs {robot.n_joints} angles, got {np.size(q_start)}")
-    if calib.robot and args.robot is None:
-        _same_robot(calib, robot, args.calibration)
+    if args.robot is None:
+        check_robot_model(calib, robot, args.calibration)
     return program, labels, robot, tcp, q_start
 
 
 def _labels(values, program) -> list[str]:
     n = len(program.motion)
     return [str(v) for v in values] if values is not None and len(values) == n else [""] * n
-
-
-def _same_robot(calib, robot, name) -> None:
-    """Refuse a calibration of another robot (its DH table or built-in name differs)."""
-    from ._analysis_inputs import calibrated_robot
-
-    other = calibrated_robot(calib, None, name)
-    if other.dh.shape != robot.dh.shape or not np.allclose(other.dh, robot.dh, atol=1e-9):
-        raise UserError(f"{name} calibrates another robot than the program's ({other.name})")

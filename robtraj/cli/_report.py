@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 from .._errors import UserError
 from . import _analysis_inputs, _output
 
@@ -39,7 +37,7 @@ def _inputs(args: argparse.Namespace, notes: list[str]):
     if args.calibration:
         calib = load_calibration(args.calibration)
         check_robot(calib, rec, args.calibration)
-        joints = np.zeros((0, 0)) if rec.robot is None else rec.robot.joints
+        joints = _analysis_inputs.frame_joints(rec)
         args.warnings = _analysis_inputs.warn_outside_maps(calib, joints, args.calibration)
         notes += [
             f"the calibration's joint {w['joint']} angle error map was not fitted at "
