@@ -64,23 +64,26 @@ from scipy.optimize import least_squares
 from robtraj import read_recording
 from robtraj.estimate import calibration as C
 from robtraj.estimate import _calib_problem as cp
+from robtraj.estimate._calib_data import prepare
+from robtraj.estimate._calib_init import pose_pairs
+from robtraj.model import Effects
 rec = read_recording(sys.argv[1])
 res = C.fit(rec)  # for the noise weights and the optimum to compare with
 t0 = time.perf_counter()
-data = C.prepare(rec)
+data = prepare(rec)
 w = res.weights[data.frame]
-cft, bff, _ = C.pose_pairs(data, C.Effects.zeros(6), data.reference)
+cft, bff, _ = pose_pairs(data, Effects.zeros(6), data.reference)
 z, x = C.robot_world_hand_eye(cft, bff)
 basis = cp.gauge_basis(data.reference, data.led_seen, False)
 basis = basis[:, np.any(basis != 0, axis=0)]
 chunks = cp.chunked_frames(data, np.sqrt(w), 2048)
-fl = cp.fixed_flange_poses(data.robot, C.Effects.zeros(6), jnp.asarray(data.log_time),
+fl = cp.fixed_flange_poses(data.robot, Effects.zeros(6), jnp.asarray(data.log_time),
                            jnp.asarray(data.joints), chunks)
 chunks = eqx.tree_at(lambda f: f.base_from_flange, chunks, fl)
 problem = cp.BundleProblem(robot=data.robot, camera_from_base=jnp.asarray(z),
     flange_from_tool=jnp.asarray(x), constellation=jnp.asarray(data.reference),
     normals=jnp.asarray(data.normals),
-    effects=C.Effects.zeros(6), log_time=jnp.asarray(data.log_time),
+    effects=Effects.zeros(6), log_time=jnp.asarray(data.log_time),
     joints=jnp.asarray(data.joints), free=(), kinematic=False, rigid_leds=True)
 B = jnp.asarray(basis)
 mask = np.repeat((np.sqrt(w) > 0)[..., None], 3, -1)

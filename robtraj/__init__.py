@@ -18,6 +18,7 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 from ._errors import UserError as UserError  # noqa: E402
+from ._recording_reader import open_recording as open_recording  # noqa: E402
 from .recording import (  # noqa: E402
     Pose as Pose,
     Probe as Probe,

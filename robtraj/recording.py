@@ -16,10 +16,10 @@ import datetime
 import json
 import os
 import zlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import h5py
 import numpy as np
@@ -35,6 +35,8 @@ SCHEMA = "robtraj.recording"
 SCHEMA_VERSION = 1
 _QUAT_TOL = 1e-6
 _TRACKER_CHUNK_FRAMES = 1000
+#: frames per HDF5 chunk of the per-frame datasets `write_recording` writes (fewer: all)
+TRACKER_CHUNK_FRAMES = _TRACKER_CHUNK_FRAMES
 
 
 class RecordingError(UserError):
@@ -169,6 +171,18 @@ class Truth:
     effects: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
+@runtime_checkable
+class FrameArray(Protocol):
+    """A per-frame array as the passes over a recording read it: `shape`, `dtype` and
+    ``x[a:b]`` giving frames ``a..b-1`` as a NumPy array. A NumPy array is one (its slices
+    are free); so are the lazily read datasets of `robtraj.open_recording`."""
+
+    shape: tuple[int, ...]
+    dtype: Any
+
+    def __getitem__(self, key: Any) -> Any: ...
+
+
 def finite_points(points: np.ndarray) -> np.ndarray:
     """`(...)` bool: all three coordinates of each point `(..., 3)` finite (as
     ``np.all(np.isfinite(points), -1)``, a coordinate at a time: a reduction over an axis
@@ -188,8 +202,8 @@ class Recording:
     time: np.ndarray
     frame_index: np.ndarray
     led_ids: np.ndarray
-    positions: np.ndarray
-    status: np.ndarray | None = None
+    positions: np.ndarray | FrameArray  # read by frame ranges when opened lazily
+    status: np.ndarray | FrameArray | None = None
     temperature: np.ndarray | None = None
     robot: RobotLog | None = None
     program: Program | None = None
@@ -415,7 +429,36 @@ def read_recording(path: str | os.PathLike) -> Recording:
     return rec
 
 
-def _read_file(f: h5py.File, name: str) -> Recording:
+#: the per-frame tracker datasets `read_deferred` can leave in the file
+DEFERRABLE = {"positions": "/tracker/positions", "status": "/tracker/status"}
+
+
+def read_deferred(
+    f: h5py.File, name: str, wrap: Mapping[str, Callable[[h5py.Dataset, int], Any]]
+) -> Recording:
+    """The recording in the open file `f`, read and checked as `read_recording` does,
+    except the per-frame datasets named in `wrap` (keys of `DEFERRABLE`): each is left in
+    the file, its shape checked without reading it, and replaced by
+    ``wrap[key](dataset, n_frames)`` (e.g. an array read on demand,
+    `robtraj.open_recording`). `name` names the file in messages. Raises `OSError` where
+    HDF5 cannot read the rest."""
+    rec = _read_file(f, name, frozenset(DEFERRABLE[k] for k in wrap))
+    datasets = {k: getattr(rec, k) for k in wrap if getattr(rec, k) is not None}
+    for k, ds in datasets.items():
+        if ds.dtype.kind not in "fiub":
+            raise RecordingError(f"{name}: {DEFERRABLE[k]} must be numeric, not {ds.dtype}")
+    # shapes only (arrays that take no memory): the trimming and the checks of a full read
+    placeholders = {k: np.broadcast_to(np.zeros((), d.dtype), d.shape) for k, d in datasets.items()}
+    shaped = _trim_interrupted_flush(rec.replace(**placeholders))
+    _validate(shaped, name)
+    return shaped.replace(
+        **{k: wrap[k](d, getattr(shaped, k).shape[0]) for k, d in datasets.items()}
+    )
+
+
+def _read_file(f: h5py.File, name: str, defer: frozenset[str] = frozenset()) -> Recording:
+    """The checked schema's recording in `f`; with `defer` (see `_read_from`) untrimmed:
+    the caller applies `_trim_interrupted_flush`."""
     schema = f.attrs.get("schema")
     if isinstance(schema, bytes):
         schema = schema.decode()
@@ -432,7 +475,8 @@ def _read_file(f: h5py.File, name: str) -> Recording:
             f"({SCHEMA_VERSION}); upgrade robtraj"
         )
     used: set[str] = set()
-    return _trim_interrupted_flush(_read_from(f, name, used))
+    rec = _read_from(f, name, used, defer)
+    return rec if defer else _trim_interrupted_flush(rec)
 
 
 def _trim_interrupted_flush(rec: Recording) -> Recording:
@@ -459,7 +503,15 @@ def _trim_interrupted_flush(rec: Recording) -> Recording:
     return rec.replace(**{k: a[:n] for k, a in arrays.items()})
 
 
-def _get(f: h5py.File, key: str, name: str, used: set[str], *, required: bool = True) -> Any:
+def _get(
+    f: h5py.File,
+    key: str,
+    name: str,
+    used: set[str],
+    *,
+    required: bool = True,
+    defer: frozenset[str] = frozenset(),
+) -> Any:
     if key not in f:
         if required:
             raise RecordingError(f"{name}: required dataset {key} is missing")
@@ -468,6 +520,8 @@ def _get(f: h5py.File, key: str, name: str, used: set[str], *, required: bool = 
     if not isinstance(obj, h5py.Dataset):
         raise RecordingError(f"{name}: {key} is a group, expected a dataset")
     used.add(key)
+    if key in defer:  # left in the file: read on demand (`open_recording`)
+        return obj
     data = obj[()]
     if obj.dtype.kind == "O" or h5py.check_string_dtype(obj.dtype) is not None:
         data = np.asarray([d.decode() if isinstance(d, bytes) else str(d) for d in np.ravel(data)])
@@ -489,8 +543,12 @@ def _attr_str(obj: h5py.HLObject, key: str) -> str | None:
     return v.decode() if isinstance(v, bytes) else str(v)
 
 
-def _read_from(f: h5py.File, name: str, used: set[str]) -> Recording:
-    g = lambda key, required=True: _get(f, key, name, used, required=required)  # noqa: E731
+def _read_from(
+    f: h5py.File, name: str, used: set[str], defer: frozenset[str] = frozenset()
+) -> Recording:
+    """The recording in `f`; the datasets named in `defer` are returned unread (as
+    `h5py.Dataset`s)."""
+    g = lambda key, required=True: _get(f, key, name, used, required=required, defer=defer)  # noqa: E731
     robot = None
     if "robot" in f:
         robot = RobotLog(

@@ -15,6 +15,25 @@ FORBIDDEN = {
 }
 
 
+#: the modules of `robtraj.estimate` a recording passes through in `calibration.fit`, in
+#: order (`fit` calls a step of each, from `_calib_setup` on): each imports only modules
+#: before it, so that the data flow one way
+FIT_STEPS = (
+    "_calib_parameters",
+    "_calib_data",
+    "_calib_init",
+    "_calib_problem",
+    "_calib_clusters",
+    "_calib_setup",
+    "_calib_solves",
+    "_calib_residuals",
+    "_calib_uncertainty",
+    "_next_poses",
+    "_calib_result",
+    "calibration",
+)
+
+
 def _module_name(path: Path) -> str:
     parts = path.relative_to(ROOT.parent).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
@@ -65,6 +84,16 @@ def test_lower_layers_do_not_import_higher_ones(package):
                 continue
             if "*" in FORBIDDEN[package] or sub in FORBIDDEN[package]:
                 bad.append(f"{_module_name(path)} imports {target}")
+    assert not bad, bad
+
+
+def test_the_steps_of_a_calibration_import_only_earlier_steps():
+    order = {f"robtraj.estimate.{m}": k for k, m in enumerate(FIT_STEPS)}
+    bad = []
+    for k, step in enumerate(FIT_STEPS):
+        for target, names in _imports(ROOT / "estimate" / f"{step}.py"):
+            modules = [f"{target}.{n}" for n in names if f"{target}.{n}" in order] or [target]
+            bad += [f"{step} imports {m}" for m in modules if order.get(m, -1) >= k]
     assert not bad, bad
 
 

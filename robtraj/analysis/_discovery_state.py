@@ -42,8 +42,9 @@ class Observations:
     """The recording as the search sees it, per observation `(N, M)` (frames, the
     recording's LED columns): the emission `angles` [rad], the per-axis variance `var`
     [m²] of the recording's `noise` model (`NoiseModel`), the fit `weights` 1/var
-    [1/m²] (0 where unseen), the `variables` the disagreement is localised by, and the
-    `heldout` check over alternate time blocks."""
+    [1/m²] (0 where unseen), the `variables` the structure test steers the search by,
+    the `heldout` check over alternate time blocks, and the variables the gap is
+    `localised` by (`variables` and the derived ones, `frame_variables`)."""
 
     rec: Recording
     angles: np.ndarray
@@ -52,6 +53,7 @@ class Observations:
     weights: np.ndarray
     variables: dict[str, np.ndarray]
     heldout: HeldOut
+    localised: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
     @property
     def sigma(self) -> float:
@@ -66,7 +68,14 @@ def observations(rec: Recording) -> Observations:
     noise, var = observation_noise(rec, angles)
     weights = np.where(rec.visible & np.isfinite(var), 1.0 / var, 0.0)
     return Observations(
-        rec, angles, noise, var, weights, frame_variables(rec, angles), HeldOut(rec, weights, var)
+        rec,
+        angles,
+        noise,
+        var,
+        weights,
+        frame_variables(rec, angles),
+        HeldOut(rec, weights, var),
+        frame_variables(rec, angles, derived=True),
     )
 
 

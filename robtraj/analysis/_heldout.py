@@ -23,7 +23,9 @@ class HeldOut:
 
         self._fit, self._predict = fit, predict_residuals
         n = rec.n_frames
-        self.fold = (np.arange(n) * HELDOUT_BLOCKS // n) % 2
+        #: `(N,)` the time block (0 … `HELDOUT_BLOCKS` − 1) of each frame; its parity is the fold
+        self.block = np.arange(n) * HELDOUT_BLOCKS // n
+        self.fold = self.block % 2
         self.rec, self.weights, self.var3 = rec, weights, 3.0 * var
 
     def gap(self, estimate: tuple[str, ...], init, space: tuple[str, ...] = ()) -> float:

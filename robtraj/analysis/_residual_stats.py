@@ -6,6 +6,7 @@ NaN where there is none."""
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -17,33 +18,90 @@ from ..recording import Recording
 ALPHA_STRUCTURE = 0.001
 
 
-def frame_variables(rec: Recording, angles: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-observation values `(N, M)` of the variables the disagreement is localised by."""
-    from ..model import interpolate_joints
+def frame_variables(
+    rec: Recording, angles: np.ndarray, *, derived: bool = False
+) -> dict[str, np.ndarray]:
+    """Per-observation values `(N, M)` (the recording's LED columns) of the variables the
+    disagreement is localised by: time, each joint's angle and velocity, the joint speed
+    and acceleration, the program segment, the LED and its emission angle.
 
+    `derived`: also the camera's `temperature` [°C] (where the recording has one that
+    varies), the `LED distance` from the camera [m] (|measured position|) and each
+    joint's gravity torque (``joint j torque`` [N·m], `robtraj.model.gravity_torque`).
+    The localisation ranks them too (`robtraj.analysis.discrepancy`); the structure test
+    that steers the search (`structure`) is left to the variables above, so that the
+    search decides as it was validated to."""
     n, m = rec.positions.shape[:2]
-    out: dict[str, np.ndarray] = {"time": np.broadcast_to(rec.time[:, None], (n, m))}
-    if rec.robot is not None:
-        import jax.numpy as jnp
 
-        q = np.asarray(
-            interpolate_joints(
-                jnp.asarray(rec.robot.time), jnp.asarray(rec.robot.joints), jnp.asarray(rec.time)
-            )
-        )
+    def each(values: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(np.asarray(values)[:, None], (n, m))
+
+    out: dict[str, np.ndarray] = {"time": each(rec.time)}
+    if derived and rec.temperature is not None:
+        temperature = np.asarray(rec.temperature, float)
+        if np.unique(temperature[np.isfinite(temperature)]).size > 1:
+            out["temperature"] = each(temperature)
+    q = None
+    if rec.robot is not None:
+        q = _joint_angles(rec)
         for j in range(q.shape[1]):
-            out[f"joint {j + 1}"] = np.broadcast_to(q[:, j, None], (n, m))
+            out[f"joint {j + 1}"] = each(q[:, j])
         qd = np.gradient(q, rec.time, axis=0)
         qdd = np.gradient(qd, rec.time, axis=0)
         for j in range(q.shape[1]):
-            out[f"joint {j + 1} velocity"] = np.broadcast_to(qd[:, j, None], (n, m))
-        out["joint speed"] = np.broadcast_to(np.linalg.norm(qd, axis=1)[:, None], (n, m))
-        out["joint acceleration"] = np.broadcast_to(np.linalg.norm(qdd, axis=1)[:, None], (n, m))
+            out[f"joint {j + 1} velocity"] = each(qd[:, j])
+        out["joint speed"] = each(np.linalg.norm(qd, axis=1))
+        out["joint acceleration"] = each(np.linalg.norm(qdd, axis=1))
     if rec.program is not None and rec.program.segment is not None:
-        out["program segment"] = np.broadcast_to(rec.program.segment[:, None], (n, m))
+        out["program segment"] = each(rec.program.segment)
     out["LED"] = np.broadcast_to(np.arange(m)[None, :], (n, m))
     out["emission angle"] = angles
+    if derived:
+        out["LED distance"] = np.sqrt(np.sum(np.asarray(rec.positions) ** 2, -1))
+        if q is not None:
+            torque = _gravity_torques(rec, q)
+            for j in range(0 if torque is None else torque.shape[1]):
+                out[f"joint {j + 1} torque"] = each(torque[:, j])
     return out
+
+
+def _joint_angles(rec: Recording) -> np.ndarray:
+    """The logged joint angles `(N, joints)` [rad] at the tracker's frames."""
+    import jax.numpy as jnp
+
+    from ..model import interpolate_joints
+
+    return np.asarray(
+        interpolate_joints(
+            jnp.asarray(rec.robot.time), jnp.asarray(rec.robot.joints), jnp.asarray(rec.time)
+        )
+    )
+
+
+def _gravity_torques(rec: Recording, q: np.ndarray) -> np.ndarray | None:
+    """Each joint's gravity torque `(N, joints)` [N·m] at joint angles `q` from the
+    recording's robot model; None when the log names no model."""
+    import jax.numpy as jnp
+
+    from .._errors import UserError
+    from ..model import robot_from_log
+
+    try:
+        robot = robot_from_log(rec.robot)
+    except UserError:
+        return None
+    return np.asarray(_per_frame_torque()(robot, jnp.asarray(q)))
+
+
+@functools.cache
+def _per_frame_torque():
+    """`robtraj.model.gravity_torque` over frames `(N, joints)`, compiled once per shape."""
+    import equinox as eqx
+    import jax
+
+    from ..model import gravity_torque
+
+    return eqx.filter_jit(jax.vmap(gravity_torque, in_axes=(None, 0)))
 
 
 def structure(

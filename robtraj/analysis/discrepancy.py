@@ -8,7 +8,8 @@ BIC, with the noise level estimated from the data's static segments (not from th
 own residual, which contains what is missing); refit with the best significant one and
 name it when the refit's likelihood-ratio test confirms it; repeat until nothing
 significant remains; finally test whether structured residual is left and, if so,
-report where it lives — never forcing a library name on it.
+report where it lives — never forcing a library name on it: per variable, the fraction
+of the held-out gap that a smooth function of it alone removes (`Localisation`), ranked.
 
 The **gap** is the RMS of the systematic disagreement with the noise taken out:
 ``sqrt(max(0, mean|r|² − mean 3σ̂²))`` over all LED observations [m].
@@ -40,6 +41,7 @@ from ._discovery_steps import (
     search_rounds,
     simpler_model_step,
 )
+from ._gap_localisation import Localisation as Localisation, label as label, localise
 from ._heldout import HELDOUT_BLOCKS as HELDOUT_BLOCKS
 from ._residual_stats import ALPHA_STRUCTURE as ALPHA_STRUCTURE, binned_rms, structure
 
@@ -54,7 +56,12 @@ SHARED_SPACE_FRAMES = 20_000
 @dataclasses.dataclass(frozen=True)
 class DiscrepancyResult:
     """What the workflow found. `structure` lists, per variable, the residual-structure
-    test after the last step (`statistic`, `dof`, `p_value`, `significant`).
+    test after the last step (`statistic`, `dof`, `p_value`, `significant`; the test
+    that steers the search), `structure_before` the same of the nominal fit.
+    `localisation` ranks the variables by where the nominal fit's gap lives (the fraction
+    of the held-out gap a smooth function of each alone removes, ± its jackknife σ;
+    `Localisation`), `localisation_after` the same of the final fit's gap when it is left
+    above its floor (else None).
     `gap_floor_m` is the gap a complete model reaches by chance with this noise and data
     (two standard errors of the gap's estimate): a final gap below it is noise.
     `rejected` lists candidates that passed the likelihood-ratio test but did not improve
@@ -67,7 +74,7 @@ class DiscrepancyResult:
     gap_floor_m: float
     unexplained: bool
     structure: dict[str, dict[str, Any]]
-    localisation: dict[str, dict[str, Any]]
+    localisation: Localisation | None
     noise_sigma_m: float
     calibration: Any
     gaps: list[float]
@@ -78,6 +85,8 @@ class DiscrepancyResult:
     stopped: str = ""
     term_residuals: dict[str, tuple] = dataclasses.field(default_factory=dict)
     included: tuple[str, ...] = ()
+    structure_before: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+    localisation_after: Localisation | None = None
 
     @property
     def named(self) -> list[str]:
@@ -94,16 +103,22 @@ class DiscrepancyResult:
 
     @property
     def unexplained_where(self) -> list[str]:
-        """Variables the remaining structure correlates with, strongest first."""
-        sig = [
-            (v["statistic"] / max(v["dof"], 1), k)
-            for k, v in self.structure.items()
-            if v["significant"]
-        ]
-        return [k for _, k in sorted(sig, reverse=True)]
+        """Where the gap left lives: the variables a smooth function of which alone
+        removes a fraction of the held-out gap more than 2σ above zero, the largest
+        first (`localisation_after`); empty when the gap is within its floor."""
+        return [] if self.localisation_after is None else self.localisation_after.localised
 
     def to_json(self) -> dict[str, Any]:
-        """DESIGN section 8: gap_before_m, steps, gap_after_m, unexplained (+ details)."""
+        """DESIGN section 8: gap_before_m, steps, gap_after_m, unexplained (+ details).
+
+        ``localisation_before`` and ``localisation_after`` (null when the gap is within
+        its floor) hold the ranking of `Localisation.to_json` (``{"gap_m", "floor_m",
+        "frames", "ranking": [{"variable", "fraction", "sigma"}]}``, the largest fraction
+        first, with ``"words"``); ``unexplained_where`` lists the variables of
+        ``localisation_after`` whose fraction is more than 2σ above zero. Renamed: the χ²
+        structure test of the nominal fit, formerly ``localisation_before``, is
+        ``structure_before`` (``structure_after`` is unchanged); ``unexplained_where``
+        formerly listed the variables that test found significant, by χ²/dof."""
         return {
             "converged": bool(self.calibration.converged),
             "convergence": self.calibration.convergence,
@@ -134,7 +149,9 @@ class DiscrepancyResult:
             "rejected": self.rejected,
             "stopped": self.stopped,
             "structure_after": self.structure,
-            "localisation_before": self.localisation,
+            "structure_before": self.structure_before,
+            "localisation_before": _localisation_json(self.localisation, "the nominal model's gap"),
+            "localisation_after": _localisation_json(self.localisation_after, "the gap left"),
         }
 
     def figures(self, out_dir: str | Path) -> list[Path]:
@@ -164,6 +181,10 @@ class DiscrepancyResult:
                 out / "discrepancy_structure.png", self.residual_before, self.residual_after
             ),
         ]
+
+
+def _localisation_json(loc: Localisation | None, what: str) -> dict[str, Any] | None:
+    return None if loc is None else {**loc.to_json(), "words": loc.words(what)}
 
 
 def discover(
@@ -219,6 +240,23 @@ def discover(
     return _result(search, state)
 
 
+def where_gap_lives(
+    rec: Recording, *, include: tuple[str, ...] = (), progress=None
+) -> Localisation:
+    """Where the gap of the nominal model (with the effects `include`d) lives on `rec`:
+    the variables ranked by the fraction of the held-out gap that a smooth function of
+    each alone removes (`Localisation`), as `discover` reports it before naming
+    anything (`DiscrepancyResult.localisation`), without the search."""
+    say = progress or (lambda _msg: None)
+    _, include = _search_set(rec, (), include)
+    say("emission angles and the noise model of the recording")
+    obs = observations(rec)
+    say("nominal fit")
+    search, state = start(obs, (), include, None, say)
+    say("where the gap lives")
+    return _where(search, search.nominal, state.floor, ())
+
+
 def _search_set(
     rec: Recording, candidates: tuple[str, ...] | None, include: tuple[str, ...]
 ) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -256,6 +294,8 @@ def _result(search: Search, state: SearchState) -> DiscrepancyResult:
         if k in obs.variables
     }
     left = structure(current.residuals, search.aligned_weights, obs.variables)
+    search.say("where the gap lives")
+    above = state.gaps[-1] > state.floor
     term_residuals = {}
     for name in state.named:
         t = term(name)
@@ -270,9 +310,9 @@ def _result(search: Search, state: SearchState) -> DiscrepancyResult:
         steps=list(state.steps),
         gap_after_m=state.gaps[-1],
         gap_floor_m=state.floor,
-        unexplained=state.gaps[-1] > state.floor and any(v["significant"] for v in left.values()),
+        unexplained=above and any(v["significant"] for v in left.values()),
         structure=left,
-        localisation=structure(nominal, search.aligned_weights, obs.variables),
+        localisation=_where(search, search.nominal, search.floor(search.nominal), search.shared),
         noise_sigma_m=obs.sigma,
         calibration=current,
         gaps=list(state.gaps),
@@ -283,4 +323,23 @@ def _result(search: Search, state: SearchState) -> DiscrepancyResult:
         stopped=state.stopped,
         term_residuals=term_residuals,
         included=search.include,
+        structure_before=structure(nominal, search.aligned_weights, obs.variables),
+        localisation_after=_where(search, current, state.floor, state.space) if above else None,
+    )
+
+
+def _where(search: Search, res, floor: float, space) -> Localisation:
+    """Where the gap of the fit `res` (in `space`) lives (`localise`), on the held-out
+    check's folds."""
+    obs = search.obs
+    return localise(
+        obs.rec,
+        res,
+        res.residuals,
+        search.aligned_weights,
+        search.var3,
+        obs.localised,
+        obs.heldout.block,
+        floor=floor,
+        space=space or (),
     )

@@ -64,7 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
             if e.name and e.name.endswith(f"._{name}"):
                 continue
             raise
-        module.register(sub)
+        command = module.register(sub)
+        if not any(a.dest == "quiet" for a in command._actions):
+            command.add_argument(
+                "--quiet", action="store_true", help="no progress display on stderr"
+            )
     return parser
 
 
@@ -74,6 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from .._progress import set_quiet
+
+    set_quiet(args.quiet)
     if args.command in _COMPILING:
         from .._jax_cache import enable_compilation_cache
 

@@ -23,7 +23,9 @@ def register(sub) -> argparse.ArgumentParser:
             "the emission axis and the line of sight, a scale per camera axis) by a score "
             "test, refit with the best and name it when the likelihood-ratio test, BIC and "
             "held-out time blocks confirm it; a dictionary term replaces the library effects "
-            "that stood in for it; repeat; report structure that nothing explains. "
+            "that stood in for it; repeat; report structure that nothing explains and where "
+            "it lives: the variables ranked by the fraction of the held-out gap that a smooth "
+            "function of each alone removes. "
             "Exit status: 0 when the final calibration converged, 3 when "
             "its solve stopped before its convergence criterion held (result still written), "
             "2 on bad input."
@@ -79,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"gap before: {doc['gap_before_m'] * 1e6:.1f} µm (noise σ {doc['noise_sigma_m'] * 1e6:.1f} µm per axis)"
     )
+    if doc["localisation_before"] is not None:
+        print(f"  {doc['localisation_before']['words']}")
     for s in doc["steps"]:
         params = ", ".join(
             f"{k} = {v['value']:.4g} ± {v['sigma']:.2g}" for k, v in s["parameters"].items()
@@ -121,7 +125,9 @@ def run(args: argparse.Namespace) -> int:
     if doc["stopped"] == "gap_within_floor":
         print("stopped: the gap is within its floor, nothing more can be told from the noise")
     if doc["unexplained"]:
-        print(f"unexplained structure remains, against: {', '.join(doc['unexplained_where'])}")
+        where = doc["localisation_after"]
+        print(f"unexplained structure remains: {where['words']}")
+        _print_ranking(where)
         if doc["steps"]:
             print(
                 "the named effects may partly stand in for it: an effect outside the library "
@@ -139,6 +145,24 @@ def run(args: argparse.Namespace) -> int:
             figs = [Path(args.report) / Path(f).relative_to(tmp) for f in res.figures(tmp)]
         print(f"figures: {', '.join(str(f) for f in figs)}")
     return 0 if doc["converged"] else NOT_CONVERGED
+
+
+#: variables listed in the ranking of where the gap left lives
+RANKED_SHOWN = 6
+
+
+def _print_ranking(where: dict) -> None:
+    """The first `RANKED_SHOWN` variables of a localisation (`Localisation.to_json`)."""
+    from ..analysis.discrepancy import label
+
+    print(
+        "  fraction of the held-out gap a smooth function of one variable alone removes "
+        "(± σ over the held-out time blocks):"
+    )
+    for row in where["ranking"][:RANKED_SHOWN]:
+        f, s = row["fraction"], row["sigma"]
+        value = "n/a" if f is None else f"{100 * f:4.0f} ± {100 * (s or 0.0):.0f} %"
+        print(f"    {label(row['variable']):<24} {value}")
 
 
 def _write_named(args: argparse.Namespace, calib) -> None:

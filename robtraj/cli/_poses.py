@@ -79,17 +79,18 @@ def summarise(est, rec) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .._recording_reader import open_recording
     from ..estimate import estimate_poses, write_poses
-    from ..recording import read_recording
 
     out = Path(args.out)
-    rec = read_recording(args.recording)
-    _output.check([out, args.json], force=args.force)
-    if args.window is not None and args.window < 2:
-        raise UserError(f"--window must be at least 2 frames, got {args.window}")
-    est = estimate_poses(
-        rec, weighting=args.weighting, window=args.window, register=not args.nominal
-    )
+    # the LED positions stay in the file, read chunk by chunk by every pass over them
+    with open_recording(args.recording) as rec:
+        _output.check([out, args.json], force=args.force)
+        if args.window is not None and args.window < 2:
+            raise UserError(f"--window must be at least 2 frames, got {args.window}")
+        est = estimate_poses(
+            rec, weighting=args.weighting, window=args.window, register=not args.nominal
+        )
     with _output.new_file(out) as tmp:
         write_poses(est, tmp, recording=args.recording)
     s = summarise(est, rec)

@@ -48,6 +48,12 @@ def register(sub) -> argparse.ArgumentParser:
         help="send the controller these poses (a program CSV/JSON, e.g. from `robtraj "
         "compensate`) in place of the scenario's targets, which /program keeps",
     )
+    p.add_argument(
+        "--ideal-controller",
+        action="store_true",
+        help="the controller attains what it is sent exactly: no approach, drift or settling "
+        "error (the ISO 9283 truths iso_cube injects)",
+    )
     p.add_argument("--no-truth", action="store_true", help="leave /truth out of the file")
     p.add_argument("--force", action="store_true", help="overwrite OUT.h5 if it exists")
     p.set_defaults(func=run)
@@ -56,8 +62,7 @@ def register(sub) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from ..model import parse_effect
-    from ..recording import write_recording
-    from ..sim import simulate
+    from ..sim import simulate_to
 
     out = Path(args.out)
     _output.check([out], force=args.force)
@@ -71,22 +76,22 @@ def run(args: argparse.Namespace) -> int:
         from ..importers import read_program
 
         commanded = read_program(args.commanded)[0].targets
-    rec = simulate(
-        args.scenario,
-        seed=args.seed,
-        duration=args.duration,
-        rate=args.rate,
-        effects=effects,
-        truth=not args.no_truth,
-        commanded=commanded,
-    )
     with _output.new_file(out) as tmp:
-        write_recording(rec, tmp)
-    vis = rec.visible
+        done = simulate_to(
+            tmp,
+            args.scenario,
+            seed=args.seed,
+            duration=args.duration,
+            rate=args.rate,
+            effects=effects,
+            truth=not args.no_truth,
+            commanded=commanded,
+            controller_errors=not args.ideal_controller,
+        )
     print(
-        f"wrote {out}: {args.scenario}, {rec.n_frames} frames at {args.rate:g} Hz "
-        f"({rec.time[-1] - rec.time[0]:.1f} s), {rec.n_leds} LEDs, "
-        f"{vis.sum(1).mean():.1f} seen per frame on average (min {vis.sum(1).min()}), "
+        f"wrote {out}: {args.scenario}, {done.n_frames} frames at {args.rate:g} Hz "
+        f"({done.time_span:.1f} s), {done.n_leds} LEDs, "
+        f"{done.seen_mean:.1f} seen per frame on average (min {done.seen_min}), "
         f"effects: {', '.join(_effect_text(k, v) for k, v in effects.items()) or 'none'}"
     )
     return 0

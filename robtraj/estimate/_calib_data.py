@@ -1,13 +1,19 @@
-"""Bundle-calibration input: a `Recording` checked and turned into padded, chunked arrays.
+"""Bundle-calibration input: a `Recording` checked and turned into padded, chunked arrays,
+with the weights of its observations.
 
 Everything here is NumPy and runs once per fit. Bad input a user can fix (no robot log,
 no tool, no overlap between the robot and tracker clocks, too few LED observations)
-raises `UserError` with a one-line message.
+raises `UserError` with a one-line message. `observations` is the first step of a fit:
+what it takes from the recording, with the recording's noise model estimated on a
+background thread meanwhile (`observation_weights` waits for it).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import Any
 
 import numpy as np
 
@@ -20,6 +26,8 @@ from ..model import (
     robot_from_log,
 )
 from ..recording import Recording, finite_points
+from ._compile_ahead import in_background
+from ._observation_noise import observation_noise
 
 #: minimum number of tracker frames inside the robot log's time span
 MIN_OVERLAP_FRAMES = 10
@@ -45,6 +53,8 @@ class CalibrationData:
       the initial values refer to, `normals` `(m, 3)` (zeros when the tool has none).
     - `unseen_leds`: ids of tool LEDs never seen (kept at the reference, not estimated);
       `led_seen` `(m,)` the complement as a mask.
+    - `columns` `(m,)` each LED's column in the recording, which has
+      `n_recording_frames` frames and `n_recording_leds` LEDs.
     """
 
     robot: RobotModel
@@ -66,6 +76,8 @@ class CalibrationData:
     unseen_leds: tuple[int, ...]
     led_seen: np.ndarray
     n_recording_frames: int
+    columns: np.ndarray
+    n_recording_leds: int
     motion_threshold: float = MOTION_THRESHOLD
 
     def joints_at(self, idx: np.ndarray, time_offset: float = 0.0) -> np.ndarray:
@@ -224,4 +236,118 @@ def prepare(
         unseen_leds=tuple(int(i) for i in tool_ids[never]),
         led_seen=seen.any(0),
         n_recording_frames=int(t.shape[0]),
+        columns=cols[led_keep],
+        n_recording_leds=rec.n_leds,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Observations:
+    """What a fit takes from a recording: its observations `data`, the constellation the
+    fit starts from per LED of `data` (`start`: `init`'s, else the reference), the clock
+    offset they were prepared with [s], the recording's `/probe` poses, and what the
+    weights will be made of: the user's `weights` (recording-shaped) or, while it is
+    estimated on a background thread, the recording's `noise` model."""
+
+    data: CalibrationData
+    start: np.ndarray
+    time_offset: float
+    probe: Any
+    weights: np.ndarray | None
+    noise: Future | None
+
+
+def observations(
+    rec: Recording,
+    init,
+    weights: np.ndarray | None,
+    motion_threshold: float | None,
+    noise: bool,
+    say: Callable[[str], None],
+) -> Observations:
+    """`rec` checked and prepared (`check`, `prepare`) at `init`'s clock offset, gauge
+    reference and motion threshold (a `CalibrationResult`, or None for the nominal
+    constellation, no offset and `MOTION_THRESHOLD`; `motion_threshold` overrides it);
+    with `noise` and no `weights`, the recording's noise model is estimated on a
+    background thread from here on (`observation_noise`)."""
+    reference = start = None
+    if init is not None and rec.tool is not None:
+        reference = _per_tool_led(rec, init.led_ids, init.gauge_reference)
+        start = _per_tool_led(rec, init.led_ids, init.constellation)
+    tau0 = 0.0 if init is None else init.time_offset
+    motion = motion_threshold
+    if motion is None:
+        motion = MOTION_THRESHOLD if init is None else init.motion_threshold
+    if not (np.isfinite(motion) and motion > 0):
+        raise UserError(f"the motion threshold must be a positive speed [rad/s], not {motion}")
+    checked = check(rec, time_offset=tau0, constellation=reference)
+    noise_job = None
+    if weights is None and noise:
+        say("noise model of the recording")
+        noise_job = in_background(observation_noise, rec)
+    data = prepare(
+        rec,
+        time_offset=tau0,
+        constellation=reference,
+        motion_threshold=float(motion),
+        checked=checked,
+    )
+    if start is not None:
+        col = {int(i): k for k, i in enumerate(rec.tool.led_ids)}
+        start = start[[col[int(i)] for i in data.led_ids]]
+    else:
+        start = data.reference
+    return Observations(data, start, tau0, rec.probe, weights, noise_job)
+
+
+def observation_weights(obs: Observations) -> tuple[np.ndarray, Any, dict[str, Any]]:
+    """The weights `(frames, leds)` [1/m²] of `obs.data`'s observations, the noise model
+    they come from (None for the user's) and its description: the user's weights, else
+    the inverse variances of the recording's noise model (waited for), uniform where it
+    could not be estimated; zero where unseen. `UserError` for weights of the wrong
+    shape or all zero."""
+    noise, info, weights = None, {"kind": "user_weights"}, obs.weights
+    if obs.noise is not None:
+        try:
+            noise, var = obs.noise.result()
+        except UserError as err:
+            info = {"kind": "uniform", "reason": str(err)}
+        else:
+            weights, info = np.where(np.isfinite(var), 1.0 / var, 0.0), noise.to_dict()
+            del var
+    if weights is None:
+        return obs.data.seen.astype(float), noise, info
+    return _aligned_weights(obs.data, weights), noise, info
+
+
+def recording_weights(data: CalibrationData, w: np.ndarray) -> np.ndarray:
+    """The weights `w` of `data`'s observations in the recording's frames and LED
+    columns (0 elsewhere): what `observation_weights` takes back as the user's."""
+    out = np.zeros((data.n_recording_frames, data.n_recording_leds))
+    out[np.ix_(data.frame, data.columns)] = w
+    return out
+
+
+def _aligned_weights(data: CalibrationData, weights: np.ndarray) -> np.ndarray:
+    """Recording-shaped `weights` at `data`'s observations, 0 where unseen or invalid."""
+    w = np.asarray(weights, float)
+    shape = (data.n_recording_frames, data.n_recording_leds)
+    if w.shape != shape:
+        raise UserError(f"weights have shape {w.shape}, expected {shape}")
+    w = w[data.frame][:, data.columns]
+    w = np.where(data.seen & np.isfinite(w) & (w > 0), w, 0.0)
+    if not np.any(w > 0):
+        raise UserError("all weights are zero")
+    return w
+
+
+def _per_tool_led(rec: Recording, ids, values) -> np.ndarray:
+    """`values` (rows per `ids`) as rows per tool LED; the nominal where `ids` lacks one."""
+    row = {int(i): k for k, i in enumerate(ids)}
+    vals = np.asarray(values, float)
+    return np.array(
+        [
+            vals[row[int(i)]] if int(i) in row else rec.tool.constellation[k]
+            for k, i in enumerate(rec.tool.led_ids)
+        ]
     )

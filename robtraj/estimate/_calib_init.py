@@ -12,9 +12,14 @@
    orthonormalisation, then linear least squares for the translations); for a run whose
    flange does not rotate about two axes, a point registration of the tool origins with
    the nominal flange←tool translation instead (`closed_form_start`).
+
+A fit starts there (`start_poses`), or at a previous calibration's values, with the
+effects at that calibration's values or zero (`start_effects`).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -22,8 +27,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import UserError
-from ..model import Effects, flange_poses
+from ..model import EFFECT_NAMES, Effects, flange_poses
+from ..recording import Pose
 from ._calib_data import CalibrationData
+from ._calib_parameters import dictionary_terms
 
 _STATIC_SPEED = 1e-4  # [rad/s] every joint slower than this: the robot stands still
 _DISTINCT = 1e-3  # [rad] joint vectors closer than this are the same pose
@@ -239,3 +246,35 @@ def robot_world_hand_eye(
     z_pose = _pose_from_matrix(Z)
     x_pose = _pose_from_matrix(X)
     return z_pose, x_pose
+
+
+def start_effects(data: CalibrationData, free: tuple[str, ...], init) -> Effects:
+    """The effects a fit starts from: `init`'s values (a `CalibrationResult`), zero
+    without one; with the dictionary's terms among `free` and `init`'s."""
+    init_terms = [n for n in (init.effects if init is not None else ()) if n not in EFFECT_NAMES]
+    effects = Effects.zeros(
+        data.robot.n_joints, tuple(dict.fromkeys((*dictionary_terms(free), *init_terms)))
+    )
+    if init is not None:
+        for k, v in init.effects.items():
+            effects = effects.with_value(k, v)
+    return effects
+
+
+def start_poses(
+    data: CalibrationData, effects: Effects, init, say: Callable[[str], None]
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(camera_from_base, flange_from_tool)`` (``wxyz_xyz``) a fit starts from: `init`'s
+    (a `CalibrationResult`), else the closed form (`closed_form_start`) from the static
+    dwells at the reference constellation."""
+    say(f"{data.n_frames} frames, {data.n_leds} LEDs: closed-form initialisation")
+    if init is not None:
+        return _wxyz_xyz(init.camera_from_base), _wxyz_xyz(init.flange_from_tool)
+    cft, bff, _ = pose_pairs(data, effects, data.reference)
+    return closed_form_start(cft, bff, data.nominal_flange_from_tool)
+
+
+def _wxyz_xyz(pose: Pose) -> np.ndarray:
+    return np.concatenate([np.asarray(pose.quaternion_wxyz), np.asarray(pose.position)]).astype(
+        np.float64
+    )

@@ -753,3 +753,12 @@ def residuals(theta: Array, data: BundleData) -> Float[Array, " r"]:
     frames = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), data.chunks)
     pred = predict(g, p, data.problem, frames)
     return (frames.sqrt_weight[..., None] * (frames.measured - pred)).reshape(-1)
+
+
+def at_estimate(bundle: BundleData, q: int, n_frames: int):
+    """The residuals of the problem at its current values (θ = 0), per observation of the
+    first `n_frames` frames (NumPy): unweighted `(frames, leds, 3)` [m], the emission
+    angles [rad] and the squared norms `(frames, leds)` [m²]."""
+    d, theta = evaluate(jnp.zeros(q), bundle.problem.constellation, bundle.problem, bundle.chunks)
+    d, theta = np.asarray(d)[:n_frames], np.asarray(theta)[:n_frames]
+    return d, theta, np.einsum("fli,fli->fl", d, d)  # no (frames, leds, 3) temporary

@@ -1,4 +1,5 @@
-"""`CalibrationResult`: the bundle calibration's output and its CALIB.json form (DESIGN §8)."""
+"""`CalibrationResult`: the bundle calibration's output and its CALIB.json form (DESIGN §8),
+and the result of a fit from what its steps found (`calibration_result`)."""
 
 from __future__ import annotations
 
@@ -6,18 +7,23 @@ import dataclasses
 import json
 from typing import Any
 
-import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from .._errors import UserError
 from ..model import MOTION_THRESHOLD, Effects
-from ..recording import Pose
+from ..recording import Pose, Recording
+from ._calib_data import recording_weights
+from ._calib_residuals import Residuals
+from ._calib_setup import Setup
+from ._calib_solves import Solved
+from ._calib_uncertainty import Uncertainty
 
 #: version of the CALIB.json schema written (DESIGN section 8); files without one are version 1
 SCHEMA_VERSION = 2
 #: versions this reader understands
 READABLE_VERSIONS = (1, 2)
+#: frames whose noise-normalised residual RMS exceeds this are outliers
+OUTLIER_U = 4.0
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -27,20 +33,6 @@ def _finite_or_none(x: float) -> float | None:
 def _float_or_nan(x) -> float:
     """A JSON number, or NaN for null (how NaN is written)."""
     return float("nan") if x is None else float(x)
-
-
-def _se3(wxyz_xyz) -> jaxlie.SE3:
-    return jaxlie.SE3(jnp.asarray(wxyz_xyz, jnp.float64))
-
-
-def _pose_of(wxyz_xyz) -> Pose:
-    return Pose.from_wxyz_xyz(wxyz_xyz)
-
-
-def _wxyz_xyz(pose: Pose) -> np.ndarray:
-    return np.concatenate([np.asarray(pose.quaternion_wxyz), np.asarray(pose.position)]).astype(
-        np.float64
-    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -266,3 +258,59 @@ class CalibrationResult:
             )
         except (KeyError, TypeError, ValueError) as e:
             raise UserError(f"not a robtraj calibration (CALIB.json): {e}") from None
+
+
+def calibration_result(
+    recording: Recording,
+    st: Setup,
+    solved: Solved,
+    unc: Uncertainty,
+    res: Residuals,
+    robust: str | None,
+) -> CalibrationResult:
+    """The `CalibrationResult` of a fit of `recording`: its setup, its solves, the
+    uncertainty and the residuals at the estimate; the covariances restricted to the
+    parameters of the model (not the held effects)."""
+    data, problem, q = st.data, solved.bundle.problem, st.q
+    eff = problem.effects
+    effects = {n: np.asarray(eff.get(n)).tolist() for n in st.free}
+    effects.update({k: v for k, v in eff.to_dict().items() if k not in effects})
+    model = np.flatnonzero(np.r_[st.in_model[:q], np.ones(len(unc.names) - q, bool)])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        outliers = np.sqrt(res.frame_noise_square[data.frame] / unc.s2) > OUTLIER_U
+    return CalibrationResult(
+        robot=recording.robot.model_document(),
+        camera_from_base=Pose.from_wxyz_xyz(problem.camera_from_base),
+        flange_from_tool=Pose.from_wxyz_xyz(problem.flange_from_tool),
+        led_ids=np.asarray(data.led_ids),
+        constellation=np.asarray(problem.constellation),
+        effects=effects,
+        estimated=st.estimated,
+        parameter_names=tuple(unc.names[i] for i in model),
+        covariance=unc.covariance[np.ix_(model, model)],
+        covariance_robust=unc.covariance_robust[np.ix_(model, model)],
+        clusters_effective=unc.clusters_effective[model],
+        n_clusters=unc.n_clusters,
+        residual_rms_m=float(np.sqrt(res.mean_square)),
+        noise_sigma_m=float(np.sqrt(res.mean_square / 3.0)),
+        gauge=st.gauge,
+        gauge_reference=np.asarray(data.reference),
+        motion_threshold=data.motion_threshold,
+        identifiability=unc.identifiability,
+        iterations=solved.iterations,
+        converged=solved.converged,
+        convergence=solved.convergence,
+        chi2=unc.chi2,
+        n_residuals=unc.n_residuals,
+        n_params=unc.rank,
+        log_likelihood=unc.log_likelihood,
+        residual_rms_per_led=res.rms_per_led,
+        residual_rms_per_frame=res.rms_per_frame,
+        residuals=res.residuals,
+        weights=recording_weights(data, solved.weights),
+        outlier_frames=data.frame[outliers],
+        noise_model=st.noise_info,
+        initial=st.initial,
+        unseen_leds=data.unseen_leds,
+        robust=robust,
+    )

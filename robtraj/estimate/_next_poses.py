@@ -11,12 +11,16 @@ dwell (`DWELL_S` at the recording's frame rate), with the recording's noise mode
 weights. Greedily, the candidate that raises ``log det`` of the column-scaled free
 normal matrix (plus a small ridge, so that null directions count) the most is taken,
 then the next given it, and so on.
+
+A calibration asks for them (`suggested_poses`) when it leaves a rigid-transform
+parameter weak or a global parameter undetermined.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import itertools
+from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
@@ -25,7 +29,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model import emission_angle, flange_poses
+from ..recording import Recording
 from ._calib_problem import BundleData, Frames, chunk_terms, h_in_theta, tool_poses
+from ._calib_residuals import Residuals
+from ._calib_setup import Setup
+from ._calib_solves import Solved
+from ._calib_uncertainty import Uncertainty
+from ._noise import NoiseModel
 from ._uncertainty import column_scale, covariance, identifiability
 
 #: [s] of static dwell each suggested pose stands for
@@ -218,3 +228,67 @@ def next_poses(
         sigma_after=after,
         dwell_s=DWELL_S,
     )
+
+
+def suggested_poses(
+    recording: Recording,
+    st: Setup,
+    solved: Solved,
+    unc: Uncertainty,
+    res: Residuals,
+    n: int,
+    say: Callable[[str], None],
+) -> Uncertainty:
+    """`unc` with up to `n` poses that would determine best what the calibration leaves
+    weak or undetermined (``identifiability["next_poses"]``, `next_poses`), with the
+    recording's noise model (or one variance from the weights), its joint log, frame
+    rate and the distances it saw; `unc` itself when nothing is to be determined or `n`
+    is 0."""
+    ident = unc.identifiability
+    # poses are suggested for the global parameters (rigid transforms, effects); an
+    # undetermined LED coordinate needs that LED seen, not another pose
+    watched = list(
+        dict.fromkeys(
+            [w["parameter"] for w in ident["weak"]]
+            + [u for u in ident["undetermined"] if u in st.names_theta[: st.q]]
+        )
+    )
+    if not (watched and n):
+        return unc
+    say("poses that would determine " + ", ".join(watched))
+    data = st.data
+    rate = 1.0 / float(np.median(np.diff(data.time))) if data.n_frames > 1 else 1.0
+    nxt = next_poses(
+        solved.bundle, unc.h, solved.free, unc.s2, st.names_theta, watched,
+        _variance_model(st.noise, data.led_ids, solved.noise_weights), data.joints, rate,
+        res.seen_angle, _distances_seen(recording), data.led_seen, n,
+    )  # fmt: skip
+    next_json = None if nxt is None else nxt.to_json()
+    return dataclasses.replace(unc, identifiability={**ident, "next_poses": next_json})
+
+
+def _distances_seen(recording: Recording) -> tuple[float, float]:
+    """The range of camera distances [m] the recording saw (1st to 99th percentile,
+    widened by 5 %)."""
+    pos = np.asarray(recording.positions)
+    dist = np.linalg.norm(pos[np.isfinite(pos[..., 0])], axis=-1)
+    lo, hi = np.quantile(dist, [0.01, 0.99])
+    return 0.95 * lo, 1.05 * hi
+
+
+def _variance_model(noise: NoiseModel | None, led_ids: np.ndarray, w: np.ndarray):
+    """``variance_at(theta, distance, led)`` [m²] of `next_poses`: the noise model's, or
+    one variance from the weights `w` without one."""
+    if noise is not None:
+        row = {int(i): k for k, i in enumerate(noise.led_ids)}
+        level = np.array([row.get(int(i), 0) for i in led_ids])
+
+        def variance_at(theta, r, led):
+            return noise.variance_at(theta, r, level[led])
+    else:
+        v = float(1.0 / np.mean(w[w > 0]))
+
+        def variance_at(theta, r, led):
+            return np.full(np.shape(theta), v)
+
+    return variance_at

@@ -32,7 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Float, Int
+from jaxtyping import Bool, Float, Int
 from scipy.optimize import nnls
 
 from .._errors import UserError
@@ -196,7 +196,16 @@ def estimate_noise(
     th = np.asarray(theta, float) if has_angle else np.zeros((n, m))
     seen = np.all(np.isfinite(pos), -1) & np.isfinite(th)
     trip = seen[:-2] & seen[1:-1] & seen[2:]
-    cand = np.flatnonzero(trip.sum(1) >= 2)
+    cand = pick_triples(trip.sum(1) >= 2, max_triples)
+    idx = cand[:, None] + np.arange(3)  # (T, 3) frames of each triple
+    return noise_from_triples(pos[idx], th[idx], trip[cand], led_ids, has_angle=bool(has_angle))
+
+
+def pick_triples(usable: np.ndarray, max_triples: int = MAX_TRIPLES) -> np.ndarray:
+    """The first frames of the triples the model uses: of the frames t where `usable`
+    `(N - 2,)` (two LEDs seen in t, t+1 and t+2), at most `max_triples` evenly spaced.
+    Raises `UserError` when there are fewer than 10."""
+    cand = np.flatnonzero(usable)
     if cand.size < 10:
         raise UserError(
             "fewer than 10 runs of three consecutive frames see two LEDs: the noise of the "
@@ -204,11 +213,26 @@ def estimate_noise(
         )
     if cand.size > max_triples:
         cand = cand[np.round(np.linspace(0, cand.size - 1, max_triples)).astype(np.int64)]
-    idx = cand[:, None] + np.arange(3)  # (T, 3) frames of each triple
-    p = np.where(trip[cand][:, None, :, None], pos[idx], 0.0)  # (T, 3, m, 3)
-    s = trip[cand].astype(float)  # (T, m) LED seen in all three frames
-    dist = np.linalg.norm(pos[idx], axis=-1)
-    ang = th[idx]
+    return cand
+
+
+def noise_from_triples(
+    positions: Float[np.ndarray, "triples 3 leds 3"],
+    theta: Float[np.ndarray, "triples 3 leds"],
+    seen: Bool[np.ndarray, "triples leds"],
+    led_ids: Int[np.ndarray, " leds"],
+    *,
+    has_angle: bool,
+) -> NoiseModel:
+    """`estimate_noise` from the frame triples it uses (`pick_triples`): their
+    `positions` [m] and emission angles `theta` [rad] (zeros without `has_angle`), and
+    which LEDs are `seen` (with an angle) in all three frames of each."""
+    m = positions.shape[2]
+    n_triples = positions.shape[0]
+    p = np.where(seen[:, None, :, None], positions, 0.0)  # (T, 3, m, 3)
+    s = seen.astype(float)  # (T, m) LED seen in all three frames
+    dist = np.linalg.norm(positions, axis=-1)
+    ang = theta
     ok = np.broadcast_to(s[:, None, :] > 0, dist.shape)
 
     ka = (
@@ -223,14 +247,14 @@ def estimate_noise(
         * _hats(np.where(ok, dist, lo), kb)[..., None, :]
     )
     # F[t, k] = Σ_s c_s² φ(θ_k(t+s), r_k(t+s)): the variance features of LED k's triple
-    feat = np.einsum("s,tskab->tkab", _C2, basis).reshape(cand.size, m, -1) * s[..., None]
+    feat = np.einsum("s,tskab->tkab", _C2, basis).reshape(n_triples, m, -1) * s[..., None]
     del basis
 
     # squared second differences of every pair distance, on the pairs seen throughout
     y = np.concatenate(
         [
             (d[:, 0] - 2 * d[:, 1] + d[:, 2]) ** 2
-            for c in range(0, cand.size, 1024)
+            for c in range(0, n_triples, 1024)
             for d in [
                 np.linalg.norm(p[c : c + 1024, :, :, None] - p[c : c + 1024, :, None], axis=-1)
             ]
@@ -257,7 +281,7 @@ def estimate_noise(
     # jackknife over contiguous time blocks: the mean variance of the observations
     a = feat * level[None, :, None]
     centre_mean = np.einsum("tkf,tk->f", a, s) / s.sum() / _C2.sum()
-    block = np.minimum((np.arange(cand.size) * BLOCKS) // cand.size, BLOCKS - 1)
+    block = np.minimum((np.arange(n_triples) * BLOCKS) // n_triples, BLOCKS - 1)
     parts = [_normal_v(a[block == b], w[block == b], y[block == b]) for b in range(BLOCKS)]
     h_all = sum(q[0] for q in parts)
     r_all = sum(q[1] for q in parts)

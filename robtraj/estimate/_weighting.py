@@ -3,6 +3,11 @@
 A scheme takes an `LedFeatures` and keyword parameters and returns `(frames, leds)`
 non-negative weights, zero where an LED is not seen. Users add their own with
 `register_weighting`.
+
+The pose pipeline passes over a recording in chunks of frames, and calls a scheme on
+one chunk at a time (all LEDs of each frame): a scheme must treat the frames
+independently (reduce over the LED axis only). What needs the whole recording comes as
+a recording-level feature (``residual_scale``), computed in a pass of its own.
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ class LedFeatures(eqx.Module):
     - `emission_angle` [rad]: angle to the camera from known normals (NaN if unknown).
     - `noise_variance` [m²]: per-axis variance of the observation under the recording's
       noise model (`robtraj.estimate.estimate_noise`: emission angle, distance, LED).
+    - `residual_scale` [m], recording-level: 1.4826 × the median absolute `residual` of
+      the seen LEDs over the whole recording (a robust σ); None where not computed.
     """
 
     visible: Bool[Array, "frames leds"]
@@ -34,13 +41,21 @@ class LedFeatures(eqx.Module):
     residual: Float[Array, "frames leds"]
     emission_angle: Float[Array, "frames leds"]
     noise_variance: Float[Array, "frames leds"]
+    residual_scale: Float[Array, ""] | None = None
 
 
 WeightingFn = Callable[..., Float[Array, "frames leds"]]
 _REGISTRY: dict[str, WeightingFn] = {}
 _NEEDS: dict[str, frozenset[str]] = {}
 FEATURES = frozenset(
-    {"variance", "pairwise_variance", "residual", "emission_angle", "noise_variance"}
+    {
+        "variance",
+        "pairwise_variance",
+        "residual",
+        "emission_angle",
+        "noise_variance",
+        "residual_scale",
+    }
 )
 
 
@@ -48,8 +63,10 @@ def register_weighting(name: str, fn: WeightingFn | None = None, *, needs=("vari
     """Register `fn(features, **params) -> weights` under `name` (usable as a decorator).
 
     `needs` names the `LedFeatures` fields the scheme reads beyond `visible`; the pose
-    pipeline computes only those (``residual``, ``emission_angle`` and ``noise_variance``
-    come from a previous fit, so such schemes are iterated).
+    pipeline computes only those (``residual``, ``emission_angle``, ``noise_variance``
+    and ``residual_scale`` come from a previous fit, so such schemes are iterated). The
+    pipeline calls `fn` on chunks of frames: it must treat frames independently (see the
+    module docstring).
     """
     unknown = set(needs) - FEATURES
     if unknown:
@@ -138,14 +155,20 @@ def threshold(f: LedFeatures, factor: float = 3.0) -> Float[Array, "frames leds"
     return keep.astype(f.variance.dtype)
 
 
-@register_weighting("robust", needs=("residual",))
+@register_weighting("robust", needs=("residual", "residual_scale"))
 def robust(f: LedFeatures, k: float = 1.345, scale: float | None = None):
     """Huber IRLS weights from the residual of a previous fit: 1 inside k·σ, k·σ/|r| outside.
 
-    σ is `scale` [m] or 1.4826 × the median absolute residual of the seen LEDs.
+    σ is `scale` [m] or 1.4826 × the median absolute residual of the seen LEDs over the
+    recording (`f.residual_scale`; where that is None, over the frames of `f`).
     """
     r = jnp.where(f.visible, f.residual, jnp.nan)
-    s = 1.4826 * jnp.nanmedian(jnp.abs(r)) if scale is None else scale
+    if scale is not None:
+        s = scale
+    elif f.residual_scale is not None:
+        s = f.residual_scale
+    else:
+        s = 1.4826 * jnp.nanmedian(jnp.abs(r))
     s = jnp.where(s > 0, s, 1.0)
     a = jnp.abs(jnp.where(f.visible, f.residual, 0.0)) / s
     w = jnp.where(a <= k, 1.0, k / jnp.maximum(a, k))

@@ -12,7 +12,7 @@ from ._scenarios import (
     iso_cube_poses,
     iso_cube_truth,
 )
-from ._simulate import joint_dwells, simulate
+from ._simulate import SimulatedFile, joint_dwells, simulate, simulate_to
 from ._unmodelled import PeriodicJointError, SightLineBias, VelocityDeadbandError
 
 __all__ = [
@@ -27,12 +27,14 @@ __all__ = [
     "SightLineBias",
     "VelocityDeadbandError",
     "SCENARIOS",
+    "SimulatedFile",
     "iso_cube_corner_truth",
     "iso_cube_cycles",
     "iso_cube_poses",
     "iso_cube_truth",
     "joint_dwells",
     "simulate",
+    "simulate_to",
     "trapezoid_duration",
     "trapezoid_progress",
 ]

@@ -191,6 +191,20 @@ def _fk_batch(robot, q):
     return jax.vmap(lambda qq: forward_kinematics(robot, qq).wxyz_xyz)(q)
 
 
+def _fk_in_chunks(robot, q: np.ndarray, chunk: int = 2**16) -> np.ndarray:
+    """`_fk_batch` of `q` `(K, J)` as `(K, 7)`, `chunk` configurations at a time (its
+    intermediates take about a kilobyte per configuration; one compilation: the last
+    chunk is padded)."""
+    size = min(chunk, q.shape[0])
+    out = np.empty((q.shape[0], 7))
+    for start in range(0, q.shape[0], size):
+        part = q[start : start + size]
+        padded = np.pad(part, [(0, size - part.shape[0]), (0, 0)], mode="edge")
+        got = np.asarray(_fk_batch(robot, jnp.asarray(padded)))
+        out[start : start + part.shape[0]] = got[: part.shape[0]]
+    return out
+
+
 @jax.jit
 def _ik_solve(robot, base_from_flange, seed):
     q = inverse_kinematics(robot, base_from_flange, seed, iterations=80)
@@ -316,7 +330,7 @@ def joint_log(
     )
     check = ~use_direct
     if np.any(check):
-        got = np.asarray(_fk_batch(robot, jnp.asarray(q[check])))
+        got = _fk_in_chunks(robot, q[check])
         pos_err = np.max(np.abs(got[:, 4:] - poses[check][:, 4:]))
         jump = np.max(np.abs(np.diff(q, axis=0)))
         if not np.isfinite(pos_err) or pos_err > 1e-7 or jump > 0.1:

@@ -6,6 +6,7 @@ it; the LED hemisphere's axis (tool z) faces the camera when the tool is unrotat
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -269,6 +270,12 @@ SCENARIOS = {
     "iso_cube": iso_cube,
     "crossing": crossing,
 }
+
+
+def ideal_controller(moves: list[Move]) -> list[Move]:
+    """`moves` as a controller without errors runs them: each target attained exactly, no
+    drift, no ringing after arrival or corners (fly-by zones stay: they are the program's)."""
+    return [dataclasses.replace(m, error=None, settle=None, corner_settle=None) for m in moves]
 
 
 def scenario_moves(name: str, duration: float, rng: np.random.Generator) -> list[Move]:

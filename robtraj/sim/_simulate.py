@@ -1,10 +1,16 @@
-"""Scenario → Recording: robot motion, effects, camera visibility and noise."""
+"""Scenario → Recording: `simulate` in memory, `simulate_to` straight to a file.
+
+Both take the frames a chunk at a time from one generator (`._generate`), so that
+`simulate_to` writes a recording of any length in bounded memory.
+"""
 
 from __future__ import annotations
 
 import dataclasses
-import datetime
+import os
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -12,77 +18,30 @@ import jaxlie
 import numpy as np
 
 from .._errors import UserError
-from ..model import (
-    BUILTIN_ROBOTS,
-    CameraModel,
-    Effects,
-    emission_angle,
-    flange_poses,
-    hemispherical_tool,
-    in_volume,
-    interpolate_joints,
-    led_positions,
-    motion_direction,
-    motion_sign,
-    noise_sigma,
-    predict_tool_poses,
+from .._progress import progress_bar, progress_status
+from .._recording_writer import RecordingWriter, frame_arrays, with_frame_arrays
+from ..model import BUILTIN_ROBOTS, CameraModel, Effects, flange_poses, hemispherical_tool
+from ..recording import Pose, Recording
+from ._generate import (
+    Q_SEED as Q_SEED,  # the robot's start configuration (for tests)
+    frame_chunks,
+    simulation_plan,
 )
-from ..recording import Pose, Program, Recording, RobotLog, Truth
-from ._motion import Move, joint_log
-from ._scenarios import DEFAULT_DURATION, scenario_moves
-from ._unmodelled import describe as describe_unmodelled
-
-ROBOT_RATE = 250.0  # [Hz] joint log rate of the controller
-#: nominal camera placement: at (3.2, 0, 1.0) m in the base frame, optical axis along −x
-NOMINAL_BASE_FROM_CAMERA = jaxlie.SE3.from_rotation_and_translation(
-    jaxlie.SO3.from_matrix(jnp.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])),
-    jnp.array([3.2, 0.0, 1.0]),
-)
-Q_SEED = np.array([0.0, 0.3, 0.2, 0.0, -0.5, 0.0])
+from ._motion import Move
 
 
-def _random_se3(rng: np.random.Generator, angle: float, shift: float) -> jaxlie.SE3:
-    rotvec = rng.normal(size=3)
-    rotvec *= angle / np.linalg.norm(rotvec)
-    return jaxlie.SE3.from_rotation_and_translation(
-        jaxlie.SO3.exp(jnp.asarray(rotvec)), jnp.asarray(rng.normal(scale=shift, size=3))
-    )
+@dataclasses.dataclass(frozen=True)
+class SimulatedFile:
+    """What `simulate_to` wrote: the recording at `path`, `n_frames` frames of `n_leds`
+    LEDs over `time_span` [s] (first to last frame), with on average `seen_mean` and at
+    least `seen_min` LEDs seen per frame."""
 
-
-def _pose(t: jaxlie.SE3) -> Pose:
-    return Pose(np.asarray(t.translation()), np.asarray(t.rotation().wxyz))
-
-
-@jax.jit
-def _observe(
-    robot,
-    effects,
-    camera,
-    camera_from_base,
-    flange_from_tool,
-    log_time,
-    joints,
-    t,
-    direction,
-    drift,
-    p,
-    n,
-    moving,
-):
-    q = interpolate_joints(log_time, joints, t)
-    tool = predict_tool_poses(
-        robot, effects, camera_from_base, flange_from_tool, q, direction, drift, moving
-    )
-    leds = led_positions(tool, effects, p, n)
-    normals = jax.vmap(lambda T: jax.vmap(T.rotation().apply)(n))(tool)
-    theta = emission_angle(leds, normals)
-    return (
-        tool.wxyz_xyz,
-        leds,
-        theta,
-        in_volume(camera, leds),
-        noise_sigma(camera, theta, jnp.linalg.norm(leds, axis=-1)),
-    )
+    path: Path
+    n_frames: int
+    n_leds: int
+    time_span: float
+    seen_mean: float
+    seen_min: int
 
 
 def simulate(
@@ -98,6 +57,7 @@ def simulate(
     moves: Sequence[Move] | None = None,
     unmodelled: Sequence = (),
     commanded: Pose | None = None,
+    controller_errors: bool = True,
 ) -> Recording:
     """Simulate a tracker recording of `scenario` (seeded, reproducible).
 
@@ -110,132 +70,82 @@ def simulate(
     `joint_dwells`) instead of the scenario's; the truth is that of the same `seed`.
     `unmodelled`: physics outside robtraj's model (`robtraj.sim.PeriodicJointError`,
     `VelocityDeadbandError`, `SightLineBias`), described in the truth's effects under
-    ``"unmodelled"``. `commanded` `(P, ·)`: the poses the controller is sent in place of
-    the program's targets (e.g. a compensated program, `robtraj compensate`); the
-    recording's `/program` keeps the targets (what the robot should reach).
+    ``"unmodelled"``; an effect's ``leds(leds, theta)`` must act frame by frame (the
+    frames are generated in chunks). `commanded` `(P, ·)`: the poses the controller is
+    sent in place of the program's targets (e.g. a compensated program, `robtraj
+    compensate`); the recording's `/program` keeps the targets (what the robot should
+    reach). `controller_errors=False`: the controller attains what it is sent exactly
+    (the program's injected approach, drift and ringing errors, e.g. `iso_cube`'s ISO 9283
+    truths, left out).
+
+    The whole recording is returned in memory; `simulate_to` writes the same recording
+    to a file as it is generated, in memory independent of its length.
     """
-    duration = DEFAULT_DURATION.get(scenario, 30.0) if duration is None else float(duration)
-    if not (duration > 0 and np.isfinite(duration)):
-        raise UserError(f"duration must be positive, got {duration}")
-    if not (0 < rate <= 20000):
-        raise UserError(f"rate must be in (0, 20000] Hz, got {rate}")
-    if robot not in BUILTIN_ROBOTS:
-        raise UserError(f"unknown robot {robot!r} (built in: {', '.join(BUILTIN_ROBOTS)})")
-    rng = np.random.default_rng(seed)
-    model = BUILTIN_ROBOTS[robot]()
-    camera = CameraModel() if camera is None else camera
-    if effects is None:
-        effects = Effects.zeros(model.n_joints)
-    elif isinstance(effects, dict):
-        effects = Effects.from_dict(effects, model.n_joints)
-    tool = hemispherical_tool()
-
-    # truth: perturbed camera placement, tool mount and constellation
-    camera_from_base = (
-        NOMINAL_BASE_FROM_CAMERA @ _random_se3(rng, np.deg2rad(2.0), 0.03)
-    ).inverse()
-    nominal_fft = jaxlie.SE3.from_rotation_and_translation(
-        jaxlie.SO3(jnp.asarray(tool.flange_from_tool.quaternion_wxyz)),
-        jnp.asarray(tool.flange_from_tool.position),
+    plan = simulation_plan(
+        scenario,
+        seed=seed,
+        duration=duration,
+        rate=rate,
+        effects=effects,
+        camera=camera,
+        robot=robot,
+        truth=truth,
+        moves=moves,
+        unmodelled=unmodelled,
+        commanded=commanded,
+        controller_errors=controller_errors,
     )
-    flange_from_tool = nominal_fft @ _random_se3(rng, np.deg2rad(0.3), 0.5e-3)
-    constellation = tool.constellation + rng.normal(scale=50e-6, size=tool.constellation.shape)
+    n = plan.n_frames
+    arrays = {k: np.empty((n, *a.shape[1:]), a.dtype) for k, a in frame_arrays(plan.header).items()}
+    start = 0
+    for chunk in frame_chunks(plan):
+        for k, a in frame_arrays(chunk).items():
+            arrays[k][start : start + a.shape[0]] = a
+        start += chunk.n_frames
+    return with_frame_arrays(plan.header, arrays)
 
-    # robot: program → joint log on the robot clock
-    moves = scenario_moves(scenario, duration, rng) if moves is None else list(moves)
-    targets = np.stack([m.position for m in moves]), np.stack([m.quaternion_wxyz for m in moves])
-    if commanded is not None:
-        if np.shape(commanded.position) != targets[0].shape:
-            raise UserError(
-                f"{np.shape(commanded.position)[0]} commanded poses for {len(moves)} targets"
-            )
-        moves = [
-            dataclasses.replace(m, position=np.asarray(p), quaternion_wxyz=np.asarray(q))
-            for m, p, q in zip(moves, commanded.position, commanded.quaternion_wxyz, strict=True)
-        ]
-    n = int(round(duration * rate))
-    t_track = np.arange(n) / rate
-    tau = float(effects.time_offset)
-    log_time = np.arange(-0.5 + tau, duration + 0.5 + tau, 1.0 / ROBOT_RATE)
-    joints, departure, _ = joint_log(model, moves, nominal_fft, Q_SEED, log_time)
-    direction = motion_direction(log_time, joints, t_track + tau)
-    segment = (np.searchsorted(departure, t_track + tau, side="left") - 1).astype(np.int32)
 
-    temperature = (21.0 + 2.0 * t_track / duration + rng.normal(scale=0.01, size=n)).astype(
-        np.float32
-    )
-    drift = temperature.astype(np.float64) - float(temperature[0])
+def simulate_to(
+    path: str | os.PathLike,
+    scenario: str = "paper",
+    *,
+    overwrite: bool = False,
+    progress: bool | None = None,
+    **options: Any,
+) -> SimulatedFile:
+    """Simulate a recording of `scenario` and write it to `path` as it is generated.
 
-    tool_wxyz_xyz, leds, theta, inside, sigma = (
-        np.asarray(a)
-        for a in _observe(
-            model,
-            effects,
-            camera,
-            camera_from_base,
-            flange_from_tool,
-            jnp.asarray(log_time),
-            jnp.asarray(joints),
-            jnp.asarray(t_track + tau),
-            jnp.asarray(direction),
-            jnp.asarray(drift),
-            jnp.asarray(constellation),
-            jnp.asarray(tool.normals),
-            jnp.asarray(motion_sign(log_time, joints, t_track + tau)),
-        )
-    )
-    for effect in unmodelled:
-        if hasattr(effect, "leds"):
-            leds = effect.leds(leds, theta)
-    logged = joints
-    for effect in unmodelled:
-        if hasattr(effect, "log"):
-            logged = effect.log(log_time, logged)
-    facing = theta < camera.max_emission_angle
-    dropped = rng.random(theta.shape) < camera.dropout
-    seen = inside & facing & ~dropped
-    status = np.where(
-        seen, np.where(theta > camera.low_signal_angle, 3, 0), np.where(inside, 1, 2)
-    ).astype(np.uint8)
-    noisy = leds + sigma[..., None] * rng.normal(size=leds.shape)
-    positions = np.where(seen[..., None], noisy, np.nan)
-
-    rec_truth = None
-    if truth:
-        rec_truth = Truth(
-            tool_pose=Pose(np.asarray(tool_wxyz_xyz[:, 4:]), np.asarray(tool_wxyz_xyz[:, :4])),
-            camera_from_base=_pose(camera_from_base),
-            flange_from_tool=_pose(flange_from_tool),
-            constellation=constellation,
-            effects={
-                **effects.to_dict(),
-                **({"unmodelled": describe_unmodelled(unmodelled)} if unmodelled else {}),
-            },
-        )
-    return Recording(
-        time=t_track,
-        frame_index=np.arange(n, dtype=np.uint64),
-        led_ids=tool.led_ids,
-        positions=positions,
-        status=status,
-        temperature=temperature.astype(np.float32),
-        robot=RobotLog(time=log_time, joints=logged, model=robot, dh=None),
-        program=Program(
-            targets=Pose(*targets),
-            motion=np.array([m.motion for m in moves]),
-            speed=np.array([m.speed for m in moves]),
-            segment=segment,
-        ),
-        tool=tool,
-        probe=None,
-        truth=rec_truth,
-        attrs={
-            "source": "simulation",
-            "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "scenario": scenario,
-            "seed": int(seed),
-            "rate_hz": float(rate),
-        },
+    The file holds what ``write_recording(simulate(scenario, **options), path)`` writes
+    (`options`: `simulate`'s keyword arguments), but only a chunk of tracker frames
+    (`CHUNK_FRAMES`) is in memory at a time, beside the program and the robot's 250 Hz
+    joint log, which grow with the duration (computing the log of an hour takes about
+    0.4 GB).
+    The file appears under `path` only when complete (a failure or an interrupt leaves
+    none); an existing `path` is refused (`UserError`) unless `overwrite`. `progress`: on
+    stderr (None: when stderr is a terminal).
+    """
+    if Path(path).exists() and not overwrite:  # before any work
+        raise UserError(f"{path} exists; refusing to overwrite it (use --force or another name)")
+    with progress_status("simulate: the robot's motion", progress):
+        plan = simulation_plan(scenario, **options)
+    n, seen_sum, seen_min = plan.n_frames, 0, plan.header.n_leds
+    with (
+        RecordingWriter(path, plan.header, n, overwrite=overwrite) as out,
+        progress_bar("simulate", n, progress) as advance,
+    ):
+        for chunk in frame_chunks(plan):
+            out.append(chunk)
+            seen = chunk.visible.sum(1)
+            seen_sum += int(seen.sum())
+            seen_min = min(seen_min, int(seen.min()))
+            advance(chunk.n_frames)
+    return SimulatedFile(
+        path=Path(path),
+        n_frames=n,
+        n_leds=plan.header.n_leds,
+        time_span=(n - 1) / plan.rate,
+        seen_mean=seen_sum / n,
+        seen_min=seen_min,
     )
 
 

@@ -33,6 +33,7 @@ def _forbid(monkeypatch, target: str) -> None:
 
 HEAVY = [
     "robtraj.sim:simulate",
+    "robtraj.sim:simulate_to",
     "robtraj.estimate:estimate_poses",
     "robtraj.estimate.calibration:fit",
     "robtraj.estimate._base_frame:base_frame_poses",

@@ -1,9 +1,11 @@
 """Close the loop on the simulator, through the CLI: a robot with hidden compliance,
-link length and joint offset errors is calibrated; `compensate` corrects its ISO cube
-program; the same robot runs the corrected program (`simulate --commanded`) and
-`iso9283` shows what is left: exactly the cube's injected approach and drift errors,
-which no model of the robot describes. A target beyond the recorded robot's joint
-limits is refused by name."""
+link length and joint offset errors is calibrated and its model named (`discrepancy
+--calibration-out`); `compensate` corrects its ISO cube program; the same robot runs the
+corrected program (`simulate --commanded`) and `iso9283` shows what is left. With a
+controller that attains its targets exactly (`--ideal-controller`) that is the
+calibration's own error: AP ≤ 0.5·RP + 20 µm at every pose. With the cube's injected
+controller errors it is exactly those approach and drift errors, which no model of the
+robot describes. A target beyond the recorded robot's joint limits is refused by name."""
 
 import dataclasses
 import json
@@ -48,18 +50,38 @@ def _iso(tmp, name, *extra):
 
 
 @pytest.fixture(scope="module")
-def loop(tmp_path_factory):
+def named(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("compensate")
     cal, calib = tmp / "cal.h5", tmp / "calib.json"
     args = ["--scenario", "calibration", "--seed", 1, "--duration", 40, "--rate", 100]
     assert _cli("simulate", cal, *args, *HIDDEN, "--no-truth") == 0
-    est = "joint_compliance,link_length,joint_offset"
-    assert _cli("calibrate", cal, "-o", calib, "--estimate", est) == 0
+    assert _cli("discrepancy", cal, "--calibration-out", calib, "--json", tmp / "d.json") == 0
+    return tmp
+
+
+@pytest.fixture(scope="module")
+def loop(named):
+    tmp = named
     before, rec = _iso(tmp, "iso")
     corrected = tmp / "corrected.csv"
-    assert _cli("compensate", rec, "--calibration", calib, "-o", corrected) == 0
+    assert _cli("compensate", rec, "--calibration", tmp / "calib.json", "-o", corrected) == 0
     after, _ = _iso(tmp, "iso_compensated", "--commanded", corrected)
     return tmp, before, after
+
+
+def test_compensation_brings_the_accuracy_to_the_repeatability(named):
+    """A controller that attains what it is sent: after compensation AP ≤ 0.5·RP + 20 µm at
+    every pose (from several tenths of a millimetre), RP unchanged."""
+    tmp = named
+    before, rec = _iso(tmp, "ideal", "--ideal-controller")
+    corrected = tmp / "ideal_corrected.csv"
+    assert _cli("compensate", rec, "--calibration", tmp / "calib.json", "-o", corrected) == 0
+    after, _ = _iso(tmp, "ideal_compensated", "--ideal-controller", "--commanded", corrected)
+    for name in ("P1", "P2", "P3", "P4", "P5"):
+        assert before[name]["AP_mm"] > 0.3, name
+        assert after[name]["AP_mm"] <= 0.5 * after[name]["RP_mm"] + 0.020, (name, after[name])
+        # RP ≈ 10 µm from ~5 dwells: its standard error is ~2.5 µm
+        assert after[name]["RP_mm"] == pytest.approx(before[name]["RP_mm"], abs=5e-3)
 
 
 def test_compensation_leaves_only_the_unmodelled_approach_error(loop):

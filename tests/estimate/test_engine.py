@@ -125,7 +125,9 @@ def test_bundle_normal_equations_are_those_of_the_pure_residuals(terms):
     those of `residuals` through `jax.jacfwd` over all frames at once. "rigid LEDs": the
     LED-level effects at zero, whose columns the rigid path takes in closed form."""
     from robtraj.estimate import calibration as cal
+    from robtraj.estimate._calib_parameters import effect_of
     from robtraj.estimate._calib_problem import is_led_level
+    from robtraj.estimate._calib_setup import setup
     from robtraj.model import EFFECT_NAMES, dictionary
     from robtraj.sim import simulate
 
@@ -133,7 +135,7 @@ def test_bundle_normal_equations_are_those_of_the_pure_residuals(terms):
     # every effect free: the closed-form effect columns of the tool pose are checked too
     names = EFFECT_NAMES + (dictionary(6) if terms != "library" else ())
     rigid = terms == "rigid LEDs"
-    st = cal._setup(rec, names, None, None, 16, lambda _m: None, start_only=rigid)
+    st = setup(rec, names, None, None, 16, lambda _m: None, start_only=rigid)
     assert st.bundle.problem.rigid_leds == rigid
     rng = np.random.default_rng(3)
     theta = np.zeros(len(st.names_theta))
@@ -145,11 +147,11 @@ def test_bundle_normal_equations_are_those_of_the_pure_residuals(terms):
     theta[squared] = rng.normal(0, 1e-8, len(squared))  # [rad/(N·m)²]
     theta[st.q :] = rng.normal(0, 1e-4, theta.size - st.q) * st.has_column[st.q :]
     if rigid:
-        led = [i for i, n in enumerate(st.names_theta[: st.q]) if is_led_level(cal._effect_of(n))]
+        led = [i for i, n in enumerate(st.names_theta[: st.q]) if is_led_level(effect_of(n))]
         assert len(led) >= 8  # led_angle_bias, tracker_scale and the dictionary's LED terms
         theta[led] = 0.0
     theta = jnp.asarray(theta)
-    h, b, c = normal_at(cal.bundle_normal, theta, st.bundle)  # compiled by `_setup`
+    h, b, c = normal_at(cal.bundle_normal, theta, st.bundle)  # compiled by `setup`
     r = eqx.filter_jit(cal.residuals)(theta, st.bundle)
     j = -eqx.filter_jit(jax.jacfwd(cal.residuals))(theta, st.bundle)
     np.testing.assert_allclose(c, r @ r, rtol=1e-10)
@@ -185,11 +187,12 @@ def test_bundle_normal_equations_with_a_joint_map_add_its_prior():
     `residuals` through `jax.jacfwd`, and the normal equations add the term's prior,
     ``H + Λ``, ``b − Λc``, ``cost + cᵀΛc``, on its entries only."""
     from robtraj.estimate import calibration as cal
+    from robtraj.estimate._calib_setup import setup
     from robtraj.model import term
     from robtraj.sim import simulate
 
     rec = simulate("paper", seed=0, duration=8.0, rate=25.0)
-    st = cal._setup(rec, ("joint_offset", "joint2_map"), None, None, 16, lambda _m: None)
+    st = setup(rec, ("joint_offset", "joint2_map"), None, None, 16, lambda _m: None)
     mine = [i for i, n in enumerate(st.names_theta) if n.startswith("joint2_map.")]
     assert len(mine) == term("joint2_map").size
     np.testing.assert_array_equal(np.asarray(st.bundle.prior.index), mine)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from robtraj.estimate import calibration as C
+from robtraj.estimate._calib_setup import setup
 from robtraj.estimate._next_poses import _information, candidate_joints
 from robtraj.model import interpolate_joints
 from robtraj.sim import simulate
@@ -23,7 +24,7 @@ def test_information_of_the_recordings_own_frames_is_its_normal_matrix(constant_
     engine accumulates over the chunks — to rounding (the crossing run has no effect
     that depends on the motion)."""
     rec, res = constant_orientation
-    st = C._setup(rec, res.estimated, res, res.weights, None, lambda _m: None)
+    st = setup(rec, res.estimated, res, res.weights, None, lambda _m: None)
     data = st.data
     q = interpolate_joints(
         jnp.asarray(data.log_time), jnp.asarray(data.joints), jnp.asarray(data.time)
