@@ -65,6 +65,7 @@ from robtraj import read_recording
 from robtraj.estimate import calibration as C
 from robtraj.estimate import _calib_problem as cp
 from robtraj.estimate._calib_data import prepare
+from robtraj.estimate._calib_frames import Weights
 from robtraj.estimate._calib_init import pose_pairs
 from robtraj.model import Effects
 rec = read_recording(sys.argv[1])
@@ -76,7 +77,8 @@ cft, bff, _ = pose_pairs(data, Effects.zeros(6), data.reference)
 z, x = C.robot_world_hand_eye(cft, bff)
 basis = cp.gauge_basis(data.reference, data.led_seen, False)
 basis = basis[:, np.any(basis != 0, axis=0)]
-chunks = cp.chunked_frames(data, np.sqrt(w), 2048)
+chunks = cp.whole(cp.tracker_frames(data, Weights(user=res.weights), 2048))
+chunks = jax.tree_util.tree_map(lambda a: a.reshape(-1, 2048, *a.shape[1:]), chunks)
 fl = cp.fixed_flange_poses(data.robot, Effects.zeros(6), jnp.asarray(data.log_time),
                            jnp.asarray(data.joints), chunks)
 chunks = eqx.tree_at(lambda f: f.base_from_flange, chunks, fl)

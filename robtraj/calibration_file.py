@@ -143,6 +143,22 @@ def _covariance_robust(doc: dict, cov: dict | None) -> dict | None:
     return {"matrix": m.tolist(), "clusters": clusters, "effective_clusters": eff}
 
 
+def _covariance_field(doc: dict, cov: dict | None) -> dict | None:
+    field = doc.get("covariance_field")
+    if field is None:
+        return None
+    if not isinstance(field, dict) or "matrix" not in field or cov is None:
+        raise UserError(
+            "'covariance_field' must be null or an object with a matrix beside a covariance"
+        )
+    n = len(cov["parameters"])
+    m = _numbers(field["matrix"], (n, n), "covariance_field.matrix")
+    model_error = field.get("model_error") or {}
+    if not isinstance(model_error, dict):
+        raise UserError("covariance_field.model_error must be an object")
+    return {"matrix": m.tolist(), "model_error": model_error}
+
+
 def _check_version(doc: dict) -> None:
     from .estimate.calibration import READABLE_VERSIONS, SCHEMA_VERSION
 
@@ -201,6 +217,10 @@ def parse_calibration(doc: Any, name: str = "CALIB.json"):
         robust = _covariance_robust(doc, cov)
         if robust is not None:
             clean["covariance_robust"] = robust
+        clean.pop("covariance_field", None)
+        field = _covariance_field(doc, cov)
+        if field is not None:
+            clean["covariance_field"] = field
         ident = doc.get("identifiability", {})
         if not isinstance(ident, dict):
             raise UserError("'identifiability' must be an object")

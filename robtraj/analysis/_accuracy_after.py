@@ -12,8 +12,8 @@ stay. Here ``AP_after`` is the barycentre of ``attained − M(q_T)`` over the po
 attainments (M with every effect, backlash by each attainment's approach direction).
 
 Its σ is the calibration's: the covariance of camera←base, flange←tool and the effects,
-with each σ the one the calibration quotes (the larger of Gauss–Newton and robust,
-Gauss–Newton's correlations), carried linearly to ``AP_after`` by JAX forward-mode
+with each σ the one the calibration quotes (`CalibrationResult.quoted`: the largest of
+Gauss–Newton, cluster-robust and model-error field; Gauss–Newton's correlations), carried linearly to ``AP_after`` by JAX forward-mode
 (camera←base and flange←tool move the measured positions, the effects the model). The
 maps' knots carry no covariance in CALIB.json and are left out of σ; the scatter of the
 attainments (repeatability) is not a model error and is not in it either.

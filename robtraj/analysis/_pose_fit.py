@@ -24,6 +24,7 @@ from .._errors import UserError
 from ..estimate import (
     GaussianPrior,
     ModelErrorField,
+    QuotedSigma,
     composed,
     covariance,
     field_covariance,
@@ -31,6 +32,8 @@ from ..estimate import (
     jackknife_covariance,
     no_prior,
     normal_at,
+    quoted_sigma,
+    sigma_of,
     solve,
     term_prior,
 )
@@ -344,6 +347,7 @@ class PoseFit:
     (``wxyz_xyz``); `free`: estimated parameters; `fixed_unidentifiable`: effect
     parameters fixed because they are not identifiable (with the direction they are
     confounded with); `sigma`: 1σ of the estimated parameters (`np.nan` elsewhere), the
+    quoted σ (`robtraj.estimate.quoted_sigma`; `quoted` says which source set each): the
     largest of `sigma_model` (``s²(JᵀWJ + Λ)⁻¹``, the posterior with the prior Λ of the
     maps, ``s² = χ²/(n − p_eff)``, p_eff the effective parameter count) and, except on
     entries under a prior, two that survive model error (`robust_terms`, computed when
@@ -394,14 +398,16 @@ class PoseFit:
         return self._robust()
 
     @functools.cached_property
-    def sigma(self) -> np.ndarray:
+    def quoted(self) -> QuotedSigma:
+        """The quoted σ with the source that set each (`robtraj.estimate.quoted_sigma`)."""
         terms = self.robust_terms
-        if not terms:
-            return self.sigma_model
-        robust = np.fmax(np.fmax(self.sigma_model, terms["jackknife"]), terms["field"])
-        if self.prior_entries is None:
-            return robust
-        return np.where(self.prior_entries, self.sigma_model, robust)
+        return quoted_sigma(
+            self.sigma_model, terms.get("jackknife"), terms.get("field"), prior=self.prior_entries
+        )
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return self.quoted.sigma
 
     @property
     def n_free(self) -> int:
@@ -865,12 +871,9 @@ def fit_poses(
     # effective parameter count tr((H_data + Λ)⁺ H_data): the rank without a prior
     p_eff = float(np.sum(cov_unit * (h - lam))) if data.prior.size else float(rank)
     cov = cov_unit * (chi2 / max(1.0, n_res - p_eff))
-    sigma = np.where(free, np.sqrt(np.clip(np.diag(cov), 0.0, None)), np.nan)
+    sigma = sigma_of(cov, free)
 
     def robust():
-        def sig(c):
-            return np.where(free, np.sqrt(np.clip(np.diag(c), 0.0, None)), np.nan)
-
         # one linearisation for both: the Jacobian does not depend on the regions
         lin = linearise(theta, data, regions(series))
         flat = free & ~prior_entries
@@ -878,8 +881,8 @@ def fit_poses(
         cov_f = np.zeros_like(h)
         cov_f[np.ix_(flat, flat)] = field.covariance * (chi2 / max(1.0, n_res - p_eff))
         return {
-            "jackknife": sig(_region_jackknife(lin, data, free)),
-            "field": sig(cov_f),
+            "jackknife": sigma_of(_region_jackknife(lin, data, free), free),
+            "field": sigma_of(cov_f, free),
             "model_error": field.as_dict(),
         }
 

@@ -14,8 +14,9 @@ from ..recording import Recording
 
 
 def _term_block(res, effect: str) -> tuple[np.ndarray, np.ndarray]:
-    """Fitted coefficients of dictionary term `effect` and their covariance (the larger of
-    the Gauss–Newton and the cluster-robust one, as `CalibrationResult.sigma`)."""
+    """Fitted coefficients of dictionary term `effect` and their covariance: of those
+    the quoted σ takes the largest of (`CalibrationResult.quoted`: Gauss–Newton,
+    cluster-robust, model-error field), the one of the largest trace."""
     t = term(effect)
     names = [f"{effect}.{c}" for c in t.components]
     idx = [res.parameter_names.index(n) if n in res.parameter_names else -1 for n in names]
@@ -24,9 +25,8 @@ def _term_block(res, effect: str) -> tuple[np.ndarray, np.ndarray]:
     ok = [k for k, i in enumerate(idx) if i >= 0]
     if ok:
         sel = [idx[k] for k in ok]
-        blocks = [np.asarray(res.covariance)[np.ix_(sel, sel)]]
-        if res.covariance_robust is not None:
-            blocks.append(np.asarray(res.covariance_robust)[np.ix_(sel, sel)])
+        covs = (res.covariance, res.covariance_robust, res.covariance_field)
+        blocks = [np.asarray(c)[np.ix_(sel, sel)] for c in covs if c is not None]
         cov[np.ix_(ok, ok)] = max(blocks, key=lambda b: float(np.trace(b)))
     return values, cov
 

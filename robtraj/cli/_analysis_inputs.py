@@ -48,15 +48,31 @@ def add_arguments(p: argparse.ArgumentParser, *, calibration_required: bool = Tr
 
 
 def load(args: argparse.Namespace, *, need_program: bool = True):
-    """(recording, calibration, base-frame poses) for an analysis command."""
-    from ..calibration_file import check_robot, load_calibration
-    from ..estimate import base_frame_poses
-    from ..recording import read_recording
+    """(recording, calibration, base-frame poses) for an analysis command. The recording
+    is read by frame ranges (`robtraj.open_recording`): the LED positions stay on disk,
+    and are not readable from the returned recording; everything else is in memory."""
+    from .._recording_reader import open_recording
+    from ..calibration_file import load_calibration
 
     calib = load_calibration(args.calibration) if args.calibration else None
-    rec = read_recording(args.recording)
-    if need_program and rec.program is None:
-        raise UserError(f"{args.recording}: no /program (the commanded targets) to compare with")
+    with open_recording(args.recording) as rec:
+        if need_program and rec.program is None:
+            raise UserError(
+                f"{args.recording}: no /program (the commanded targets) to compare with"
+            )
+        calib, bf = _calibrated_poses(rec, calib, args)
+    name = str(args.calibration or "the calibration")
+    warn_undetermined(calib, name, "the result depends")
+    args.warnings = warn_outside_maps(calib, frame_joints(rec), name)
+    return rec, calib, bf
+
+
+def _calibrated_poses(rec, calib, args: argparse.Namespace):
+    """The calibration (`calib`, or one of `rec` itself when None) checked against `rec`,
+    and the base-frame poses of `rec` under it."""
+    from ..calibration_file import check_robot
+    from ..estimate import base_frame_poses
+
     if calib is None:
         from ..estimate.calibration import fit
 
@@ -71,10 +87,7 @@ def load(args: argparse.Namespace, *, need_program: bool = True):
     if not np.any(bf.valid):
         raise UserError(f"{args.recording}: no frame has a tool pose with this calibration")
     check_same_setup(rec, calib, bf, args.recording)
-    name = str(args.calibration or "the calibration")
-    warn_undetermined(calib, name, "the result depends")
-    args.warnings = warn_outside_maps(calib, frame_joints(rec), name)
-    return rec, calib, bf
+    return calib, bf
 
 
 def frame_joints(rec) -> np.ndarray:

@@ -91,8 +91,8 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .._progress import progress_status
+    from .._recording_reader import open_recording
     from ..model import EFFECT_NAMES, is_effect, map_words, term
-    from ..recording import read_recording
 
     _output.check([args.out, args.json], force=args.force)
     estimate = tuple(s.strip() for s in args.estimate.split(",") if s.strip())
@@ -104,22 +104,26 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.max_steps < 1:
         raise UserError(f"--max-steps must be at least 1, not {args.max_steps}")
-    rec = read_recording(args.recording)
-    check_leds_seen(rec, args.recording)
-    init = _initial(args, rec)
     from ..estimate.calibration import fit
 
-    with progress_status("calibrating") as say:
-        res = fit(
-            rec,
-            estimate=estimate,
-            robust=args.robust,
-            init=init,
-            max_iter=args.max_steps,
-            progress=say,
-            suggest=SUGGESTED_POSES,
-            motion_threshold=args.motion_threshold,
-        )
+    _return_freed_memory()
+    # the frames are read from the file block by block: memory independent of its length
+    with open_recording(args.recording) as rec:
+        check_leds_seen(rec, args.recording)
+        init = _initial(args, rec)
+        with progress_status("calibrating") as say:
+            res = fit(
+                rec,
+                estimate=estimate,
+                robust=args.robust,
+                init=init,
+                max_iter=args.max_steps,
+                progress=say,
+                suggest=SUGGESTED_POSES,
+                motion_threshold=args.motion_threshold,
+                per_observation=False,
+            )
+        joints = np.asarray(rec.robot.joints)
     if init is not None:
         res = _carried_over(res, init, args.init)
     doc = res.to_json()
@@ -136,8 +140,8 @@ def run(args: argparse.Namespace) -> int:
         f"{'converged' if res.converged else 'NOT converged'} in {res.iterations} steps",
         f"camera<-base position [{t[0]:.5f}, {t[1]:.5f}, {t[2]:.5f}] m "
         + (
-            f"(σ {1e6 * s_cfb:.1f} µm; σ are the larger of Gauss–Newton and cluster-robust "
-            f"over {res.n_clusters} clusters)"
+            f"(σ {1e6 * s_cfb:.1f} µm; σ are the largest of Gauss–Newton, cluster-robust "
+            f"over {res.n_clusters} clusters and model-error field)"
             if np.isfinite(s_cfb)
             else "(σ: not determined)"
         ),
@@ -151,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
     for name in res.estimated:
         t = term(name)
         if t is not None and t.knots:
-            q = np.asarray(rec.robot.joints)[:, t.joint]
+            q = joints[:, t.joint]
             c = np.asarray(res.effects[name], float)
             lines.append(map_words(t.joint + 1, c, (float(q.min()), float(q.max()))))
     for d in res.identifiability.get("dropped", []):
@@ -166,6 +170,18 @@ def run(args: argparse.Namespace) -> int:
     print("\n".join(lines))
     warn_undetermined(res, str(out), "iso9283, deviation and report results depend")
     return 0 if res.converged else NOT_CONVERGED
+
+
+def _return_freed_memory() -> None:
+    """Have glibc hand buffers of 1 MiB or more back to the system when they are freed:
+    every pass over the recording allocates and frees blocks of frames, which its heap
+    would otherwise keep (resident memory growing with the passes, not with the data)."""
+    import ctypes
+
+    try:
+        ctypes.CDLL("libc.so.6").mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):  # not glibc
+        pass
 
 
 def _initial(args: argparse.Namespace, rec):
@@ -227,12 +243,14 @@ def _next_pose_lines(nxt) -> list[str]:
 
 
 def check_leds_seen(rec, name: str) -> None:
-    """Refuse a recording in which no frame shows the 3 LEDs a tool pose needs."""
-    import numpy as np
+    """Refuse a recording in which no frame shows the 3 LEDs a tool pose needs (one pass
+    over its frames)."""
+    from ..recording import finite_points
 
-    seen = np.asarray(rec.visible).sum(1)
-    if seen.size == 0 or seen.max() < 3:
-        most = int(seen.max()) if seen.size else 0
+    n, most, step = rec.positions.shape[0], 0, 1 << 16
+    for a in range(0, n, step):  # a block of frames at a time
+        most = max(most, int(finite_points(rec.positions[a : a + step]).sum(1).max(initial=0)))
+    if n == 0 or most < 3:
         raise UserError(
             f"{name}: at most {most} LED{'s' * (most != 1)} seen in any frame; a tool pose "
             "(and so the calibration) needs at least 3 LEDs seen at once"

@@ -1,6 +1,7 @@
 """Estimation: static segments, LED registration, weighting schemes, per-frame poses, and
 the one least-squares engine (`solve`, `identifiability`, `covariance`,
-`robust_covariance`; Gaussian priors on terms, `GaussianPrior`).
+`robust_covariance`; Gaussian priors on terms, `GaussianPrior`; the σ a fit quotes,
+`quoted_sigma`).
 
 Bundle calibration lives in `robtraj.estimate.calibration`.
 """
@@ -28,6 +29,7 @@ from ._poses import (
 )
 from ._poses_io import read_poses, write_poses
 from ._prior import GaussianPrior, no_prior, term_prior
+from ._quoted_sigma import SOURCES as SIGMA_SOURCES, QuotedSigma, quoted_sigma, sigma_of
 from ._registration import Registration, register_leds
 from ._solve import (
     LeastSquares,
@@ -67,6 +69,10 @@ __all__ = [
     "tracker_speeds",
     "ModelErrorField",
     "field_covariance",
+    "QuotedSigma",
+    "SIGMA_SOURCES",
+    "quoted_sigma",
+    "sigma_of",
     "NoiseModel",
     "estimate_noise",
     "observation_angles",

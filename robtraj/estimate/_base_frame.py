@@ -10,6 +10,7 @@ import numpy as np
 from .._errors import UserError
 from ..jax_ops import quat_conjugate, quat_multiply, quat_rotate
 from ..recording import Recording
+from ._chunks import Scaled
 from ._poses import PoseEstimate, estimate_poses
 
 
@@ -51,7 +52,8 @@ def base_frame_poses(
     if known.sum() >= 3:
         led_ids, constellation = led_ids[known], constellation[known]
     scale = 1.0 + float(np.asarray(calibration.effects.get("tracker_scale", 0.0)))
-    positions = np.asarray(rec.positions) / scale
+    # read by frame ranges: a recording opened lazily stays on disk
+    positions = rec.positions if scale == 1.0 else Scaled(rec.positions, scale)
     est = estimate_poses(
         rec.replace(positions=positions),
         weighting=weighting,

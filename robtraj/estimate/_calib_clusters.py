@@ -10,8 +10,8 @@ from collections.abc import Callable
 import numpy as np
 
 from ._calib_data import CalibrationData
+from ._calib_frames import TrackerFrames
 from ._calib_init import dwells
-from ._calib_problem import Frames
 
 #: [s] frames in motion form clusters of this span in the robust covariance (a static
 #: dwell is one cluster): a model error is shared by neighbouring frames; longer for
@@ -33,16 +33,16 @@ def robust_affordable(q: int, say: Callable[[str], None]) -> bool:
     return True
 
 
-def frame_clusters(data: CalibrationData, chunks: Frames) -> tuple[np.ndarray, int]:
-    """Cluster index of every chunked frame `(chunks, chunk)` for the robust covariance,
-    and the cluster count (padding frames: cluster 0, they carry no weight)."""
+def frame_clusters(data: CalibrationData, tracker: TrackerFrames) -> tuple[np.ndarray, int]:
+    """Cluster index (int32) of every chunked frame `(chunks, chunk)` for the robust
+    covariance, and the cluster count (padding frames: cluster 0, they carry no weight)."""
     span = max(CLUSTER_SPAN, float(data.time[-1] - data.time[0]) / (MAX_CLUSTERS - 1))
     label = np.floor((data.time - data.time[0]) / span).astype(np.int64)
     for k, frames in enumerate(dwells(data, 0.2)):
         label[frames] = -1 - k
     _, ids = np.unique(label, return_inverse=True)
-    k, size = chunks.time.shape[:2]
-    out = np.zeros(k * size, np.int64)
+    k, size = tracker.n_chunks, tracker.size
+    out = np.zeros(k * size, np.int32)
     out[: ids.size] = ids
     return out.reshape(k, size), int(ids.max()) + 1
 

@@ -1,7 +1,8 @@
-"""Bundle-calibration input: a `Recording` checked and turned into padded, chunked arrays,
-with the weights of its observations.
+"""Bundle-calibration input: a `Recording` checked and described by compact per-frame
+arrays (which LEDs each frame sees, times, motion signs; its positions stay in the
+recording, read by frame ranges), with the weights of its observations.
 
-Everything here is NumPy and runs once per fit. Bad input a user can fix (no robot log,
+Everything here is NumPy and runs once per fit, in one pass over the frames. Bad input a user can fix (no robot log,
 no tool, no overlap between the robot and tracker clocks, too few LED observations)
 raises `UserError` with a one-line message. `observations` is the first step of a fit:
 what it takes from the recording, with the recording's noise model estimated on a
@@ -26,8 +27,10 @@ from ..model import (
     robot_from_log,
 )
 from ..recording import Recording, finite_points
+from ._calib_frames import Weights, read_rows
+from ._chunks import Columns, over_frames
 from ._compile_ahead import in_background
-from ._observation_noise import observation_noise
+from ._observation_noise import observation_noise_source
 
 #: minimum number of tracker frames inside the robot log's time span
 MIN_OVERLAP_FRAMES = 10
@@ -41,10 +44,12 @@ class CalibrationData:
     one LED of the tool; LEDs are the tool's LEDs that the tracker sees somewhere.
 
     - `time` `(n,)` tracker clock [s]; `frame` `(n,)` index into the recording's frames.
-    - `measured` `(n, m, 3)` LED positions in the camera frame [m], 0 where unseen.
+    - `positions`: the recording's `(N, M, 3)` LED positions in the camera frame [m]
+      (NaN where unseen; in memory or read by frame ranges, `robtraj.open_recording`),
+      never copied whole: `measured` reads the fit's frames and LEDs.
     - `seen` `(n, m)` bool.
-    - `direction` `(n, joints)` sign of each joint's motion (for `backlash`);
-      `moving` `(n, joints)` sign of each joint's velocity, 0 slower than
+    - `direction` `(n, joints)` int8 sign of each joint's motion (for `backlash`);
+      `moving` `(n, joints)` int8 sign of each joint's velocity, 0 slower than
       `motion_threshold` [rad/s] (`motion_sign`).
     - `drift` `(n,)` drift variable of `thermal_drift`: camera temperature change [K]
       since the first frame, or minutes since the first frame without temperatures.
@@ -60,7 +65,7 @@ class CalibrationData:
     robot: RobotModel
     time: np.ndarray
     frame: np.ndarray
-    measured: np.ndarray
+    positions: Any
     seen: np.ndarray
     direction: np.ndarray
     moving: np.ndarray
@@ -85,6 +90,20 @@ class CalibrationData:
         linearly interpolated (for grouping frames into robot poses)."""
         t = self.time[idx] + time_offset
         return np.stack([np.interp(t, self.log_time, q) for q in self.joints.T], -1)
+
+    def measured(self, idx: np.ndarray) -> np.ndarray:
+        """LED positions `(len(idx), m, 3)` [m] at the increasing frames `idx` (into
+        `data`), 0 where unseen."""
+        x = read_rows(self.positions, self.frame[idx])[:, self.columns]
+        return np.where(self.seen[idx][..., None], x, 0.0)
+
+    def measured_sum(self, idx: np.ndarray, block: int = 1 << 16) -> np.ndarray:
+        """``measured(idx).sum(0)`` `(m, 3)` [m], read `block` frames at a time and summed
+        in the same order (frame after frame)."""
+        total = np.zeros((self.n_leds, 3))
+        for a in range(0, idx.size, block):
+            total = np.concatenate([total[None], self.measured(idx[a : a + block])]).sum(0)
+        return total
 
     @property
     def n_frames(self) -> int:
@@ -176,21 +195,14 @@ def prepare(
     robot, log_time, joints, ref, tool_ids = c.robot, c.log_time, c.joints, c.reference, c.tool_ids
     cols, t, inside, tool = c.cols, c.time, c.inside, rec.tool
     have = cols >= 0
-    if np.array_equal(cols, np.arange(rec.n_leds)):
-        pos = np.asarray(rec.positions, np.float64)
-    else:
-        pos = np.full((t.shape[0], tool_ids.shape[0], 3), np.nan)
-        pos[:, have] = np.asarray(rec.positions, np.float64)[:, cols[have]]
-    seen = finite_points(pos)
     led_keep = have  # every tool LED the tracker reports (fixed shapes across recordings)
-    never = ~seen[inside].any(0) & have
+    seen = _seen(rec.positions, cols[have])
+    never = np.zeros(have.size, bool)
+    never[have] = ~seen[inside].any(0)
     frame_keep = inside & seen.any(1)
     frames = np.flatnonzero(frame_keep)
     if frames.size < t.shape[0]:
-        pos, seen = pos[frames], seen[frames]
-    if not led_keep.all():
-        pos, seen = pos[:, led_keep], seen[:, led_keep]
-    pos = np.where(seen[..., None], pos, 0.0)  # a copy: the recording's arrays are not touched
+        seen = seen[frames]
     if seen.sum() < 10:
         raise UserError(
             f"only {int(seen.sum())} finite LED observations overlap the robot log (need 10)"
@@ -213,12 +225,10 @@ def prepare(
         robot=robot,
         time=t[frames],
         frame=frames,
-        measured=pos,
+        positions=rec.positions,
         seen=seen,
-        direction=np.asarray(direction, np.float64),
-        moving=np.asarray(
-            motion_sign(log_time, joints, t[frames] + time_offset, motion_threshold), np.float64
-        ),
+        direction=_signs(direction),
+        moving=_signs(motion_sign(log_time, joints, t[frames] + time_offset, motion_threshold)),
         motion_threshold=float(motion_threshold),
         drift=drift,
         log_time=log_time,
@@ -234,11 +244,29 @@ def prepare(
             tool.reference_leds if tool.reference_leds is not None else tool_ids[:3]
         ),
         unseen_leds=tuple(int(i) for i in tool_ids[never]),
-        led_seen=seen.any(0),
+        led_seen=seen.any(0) if seen.size else np.zeros(int(have.sum()), bool),
         n_recording_frames=int(t.shape[0]),
         columns=cols[led_keep],
         n_recording_leds=rec.n_leds,
     )
+
+
+def _seen(positions, cols: np.ndarray) -> np.ndarray:
+    """`(N, len(cols))` bool: the LEDs of recording columns `cols` seen per frame, in one
+    pass over the frames."""
+    source = Columns(positions, cols)
+    out = np.empty(source.shape[:2], bool)
+
+    def visit(a, x):
+        out[a : a + x.shape[0]] = finite_points(x)
+
+    over_frames(source, visit)
+    return out
+
+
+def _signs(x) -> np.ndarray:
+    """Motion signs (−1, 0, 1) as int8: exactly the values, in an eighth of the memory."""
+    return np.asarray(x).astype(np.int8)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -284,7 +312,7 @@ def observations(
     noise_job = None
     if weights is None and noise:
         say("noise model of the recording")
-        noise_job = in_background(observation_noise, rec)
+        noise_job = in_background(observation_noise_source, rec)
     data = prepare(
         rec,
         time_offset=tau0,
@@ -300,24 +328,23 @@ def observations(
     return Observations(data, start, tau0, rec.probe, weights, noise_job)
 
 
-def observation_weights(obs: Observations) -> tuple[np.ndarray, Any, dict[str, Any]]:
-    """The weights `(frames, leds)` [1/m²] of `obs.data`'s observations, the noise model
-    they come from (None for the user's) and its description: the user's weights, else
-    the inverse variances of the recording's noise model (waited for), uniform where it
-    could not be estimated; zero where unseen. `UserError` for weights of the wrong
-    shape or all zero."""
-    noise, info, weights = None, {"kind": "user_weights"}, obs.weights
+def observation_weights(obs: Observations) -> tuple[Weights, Any, dict[str, Any]]:
+    """The weights [1/m²] of `obs.data`'s observations (`Weights`, computed per block of
+    frames), the noise model they come from (None for the user's) and its description:
+    the user's weights, else the inverse variances of the recording's noise model
+    (waited for), uniform where it could not be estimated; zero where unseen. `UserError`
+    for weights of the wrong shape or all zero."""
+    noise, info = None, {"kind": "user_weights"}
     if obs.noise is not None:
         try:
             noise, var = obs.noise.result()
         except UserError as err:
             info = {"kind": "uniform", "reason": str(err)}
         else:
-            weights, info = np.where(np.isfinite(var), 1.0 / var, 0.0), noise.to_dict()
-            del var
-    if weights is None:
-        return obs.data.seen.astype(float), noise, info
-    return _aligned_weights(obs.data, weights), noise, info
+            return Weights(noise=var), noise, noise.to_dict()
+    if obs.weights is None:
+        return Weights(), noise, info
+    return Weights(user=_checked_weights(obs.data, obs.weights)), noise, info
 
 
 def recording_weights(data: CalibrationData, w: np.ndarray) -> np.ndarray:
@@ -328,15 +355,15 @@ def recording_weights(data: CalibrationData, w: np.ndarray) -> np.ndarray:
     return out
 
 
-def _aligned_weights(data: CalibrationData, weights: np.ndarray) -> np.ndarray:
-    """Recording-shaped `weights` at `data`'s observations, 0 where unseen or invalid."""
+def _checked_weights(data: CalibrationData, weights: np.ndarray) -> np.ndarray:
+    """Recording-shaped `weights` (`UserError` for a wrong shape, or none positive at
+    `data`'s observations)."""
     w = np.asarray(weights, float)
     shape = (data.n_recording_frames, data.n_recording_leds)
     if w.shape != shape:
         raise UserError(f"weights have shape {w.shape}, expected {shape}")
-    w = w[data.frame][:, data.columns]
-    w = np.where(data.seen & np.isfinite(w) & (w > 0), w, 0.0)
-    if not np.any(w > 0):
+    at = w[data.frame][:, data.columns]
+    if not np.any(data.seen & np.isfinite(at) & (at > 0)):
         raise UserError("all weights are zero")
     return w
 

@@ -143,7 +143,7 @@ def pose_pairs(
         seen = data.seen[g]
         cnt = seen.sum(0)
         ok = cnt >= max(1, 0.5 * g.size)
-        s = (data.measured[g] * seen[..., None]).sum(0)
+        s = data.measured_sum(g)
         mean[i, ok] = s[ok] / cnt[ok, None]
         weight[i, ok] = cnt[ok]
     n_groups = len(groups)

@@ -8,8 +8,11 @@ Residuals are ``sqrt(w) · (measured − predicted)`` per LED coordinate, throug
 forward model of `robtraj.model` (`residuals`); probe poses add 6-DOF pose residuals.
 `bundle_normal` is the problem as `robtraj.estimate._solve` takes it.
 
-For whole recordings the normal equations ``JᵀJ``, ``Jᵀr`` are accumulated chunk by chunk
-(`lax.scan` over chunks of frames), never materialising the Jacobian. The effects'
+For whole recordings the normal equations ``JᵀJ``, ``Jᵀr`` are accumulated chunk by chunk,
+never materialising the Jacobian: one compiled kernel per block of frames read from the
+recording (`lax.scan` over its chunks, `_calib_frames.TrackerFrames`), its sums carried
+from block to block in the order of the chunks, so that the blocking does not change
+them; `bundle_normal` is a host loop over the blocks (`composed`). The effects'
 columns of the tool pose come in closed form from the kinematics' own twists
 (`robtraj.model.flange_jacobian`), not by forward mode through the forward kinematics.
 The constellation enters each residual only through its own LED, so its
@@ -46,8 +49,11 @@ from ..model import (
     motion_sign,
     term,
 )
+from . import _calib_frames
 from ._calib_data import CalibrationData
+from ._calib_frames import TrackerFrames, Weights
 from ._prior import GaussianPrior, no_prior
+from ._solve import composed
 
 #: effects that change the flange pose (the forward kinematics must be re-run per step)
 KINEMATIC_EFFECTS = (
@@ -432,34 +438,76 @@ def chunk_terms(g, p, problem: BundleProblem, frames: Frames, per_frame: bool = 
     return fn(g, p, problem, frames, per_frame)
 
 
-@eqx.filter_jit
-def normal_equations(g: Array, p: Array, problem: BundleProblem, chunks: Frames):
-    """Accumulate ``(Hgg, Hgp, Hpp, bg, bp, cost)`` over all chunks (`lax.scan`)."""
-    return _accumulate(g, p, problem, chunks, None, 0)[0]
+def zero_terms(q: int, m: int, n_clusters: int = 0):
+    """Zero accumulators of the normal equations' terms (per cluster with `n_clusters`)."""
+    shapes = ((q, q), (q, m, 3), (m, 3, 3), (q,), (m, 3))
+    acc = (*(jnp.zeros(s) for s in shapes), jnp.zeros(()))
+    return acc, tuple(jnp.zeros((n_clusters, *s)) for s in shapes) if n_clusters else ()
 
 
 @eqx.filter_jit
-def normal_equations_clustered(
+def normal_block(g: Array, p: Array, problem: BundleProblem, chunks: Frames, acc):
+    """``(Hgg, Hgp, Hpp, bg, bp, cost)`` of one block of chunks added to `acc`."""
+    return _accumulate(g, p, problem, chunks, None, 0, (acc, ()))[0]
+
+
+@eqx.filter_jit
+def normal_block_clustered(
     g: Array,
     p: Array,
     problem: BundleProblem,
     chunks: Frames,
     cluster: Int[Array, "chunks chunk"],
     n_clusters: int,
+    acc,
 ):
-    """`normal_equations` and every term summed per cluster of frames: `cluster` gives
-    each frame's cluster in ``[0, n_clusters)`` (padding frames carry no weight).
-    Returns ``((Hgg, Hgp, Hpp, bg, bp, cost), (Hgg, Hgp, Hpp, bg, bp) per cluster)``
-    with a leading cluster axis `(G, ...)` on the latter."""
-    return _accumulate(g, p, problem, chunks, cluster, n_clusters)
+    """`normal_block` and every term summed per cluster of frames (`cluster`: each
+    frame's cluster in ``[0, n_clusters)``; padding frames carry no weight), added to
+    `acc` = ``(terms, per-cluster terms)``."""
+    return _accumulate(g, p, problem, chunks, cluster, n_clusters, acc)
 
 
-def _accumulate(g, p, problem, chunks, cluster, n_clusters):
-    q, m = g.shape[0], p.shape[0]
-    z = jnp.zeros
-    shapes = ((q, q), (q, m, 3), (m, 3, 3), (q,), (m, 3))
-    init = (*(z(s) for s in shapes), z(()))
-    per = tuple(z((n_clusters, *s)) for s in shapes) if cluster is not None else ()
+def normal_equations(g: Array, p: Array, problem: BundleProblem, frames: TrackerFrames):
+    """Accumulate ``(Hgg, Hgp, Hpp, bg, bp, cost)`` over all frames, block by block."""
+    acc = [zero_terms(g.shape[0], p.shape[0])[0]]
+
+    def compute(block):
+        acc[0] = normal_block(g, p, problem, _frames(block), acc[0])
+
+    frames.blocks(compute)
+    return acc[0]
+
+
+def normal_equations_clustered(
+    g: Array,
+    p: Array,
+    problem: BundleProblem,
+    frames: TrackerFrames,
+    cluster: np.ndarray,
+    n_clusters: int,
+):
+    """`normal_equations` and every term summed per cluster of frames: `cluster`
+    `(chunks, chunk)` gives each frame's cluster in ``[0, n_clusters)`` (padding frames
+    carry no weight). Returns ``((Hgg, Hgp, Hpp, bg, bp, cost), (Hgg, Hgp, Hpp, bg, bp)
+    per cluster)`` with a leading cluster axis `(G, ...)` on the latter."""
+    acc = [zero_terms(g.shape[0], p.shape[0], n_clusters)]
+
+    def compute(block):
+        k = block.a // frames.size
+        ids = jnp.asarray(cluster[k : k + frames.per])
+        acc[0] = normal_block_clustered(g, p, problem, _frames(block), ids, n_clusters, acc[0])
+
+    frames.blocks(compute)
+    return acc[0]
+
+
+def _frames(block) -> Frames:
+    return Frames(**jax.device_put(block.frames))
+
+
+def _accumulate(g, p, problem, chunks, cluster, n_clusters, start):
+    """The terms of `chunks` (`lax.scan` over them) added to `start` = ``(terms,
+    per-cluster terms)``, chunk by chunk in order."""
 
     def body(carry, xs):
         acc, clustered = carry
@@ -476,13 +524,14 @@ def _accumulate(g, p, problem, chunks, cluster, n_clusters):
             )
         return (tuple(a + t for a, t in zip(acc, terms)), clustered), None
 
-    (acc, clustered), _ = jax.lax.scan(body, (init, per), (chunks, cluster))
+    (acc, clustered), _ = jax.lax.scan(body, start, (chunks, cluster))
     return acc, clustered
 
 
 @eqx.filter_jit
 def evaluate(g: Array, p: Array, problem: BundleProblem, chunks: Frames):
-    """Per observation: unweighted residual `(frames, leds, 3)` [m] and emission angle [rad]."""
+    """Per observation of a block of chunks: unweighted residual `(frames, leds, 3)` [m]
+    and emission angle [rad]."""
 
     def body(_, frames):
         tool, eff = tool_poses(g, problem, frames)
@@ -508,6 +557,38 @@ def fixed_flange_poses(robot: RobotModel, effects: Effects, log_time, joints, ch
 
     _, out = jax.lax.scan(body, None, chunks)
     return out
+
+
+def flange_poses_of(problem: BundleProblem, frames: TrackerFrames) -> np.ndarray:
+    """base←flange `(frames, 7)` ``wxyz_xyz`` of every frame at `problem`'s effects (held
+    fixed: the fit's flange poses when no kinematic effect is free)."""
+    out = np.empty((frames.n_frames, 7))
+    args = (problem.robot, problem.effects, problem.log_time, problem.joints)
+
+    def compute(block):
+        return fixed_flange_poses(*args, _frames(block))
+
+    def collect(block, poses):
+        out[block.a : block.b] = np.asarray(poses).reshape(-1, 7)[: block.b - block.a]
+
+    frames.replace(weights=Weights()).blocks(compute, collect, read=False)
+    return out
+
+
+def over_residuals(bundle: BundleData, q: int, visit) -> None:
+    """``visit(block, d, theta)`` for every block of frames in order: the residuals at
+    the problem's current values (θ = 0) of the block's frames (NumPy, padding cut),
+    unweighted `(frames, leds, 3)` [m], and their emission angles [rad]."""
+    g, p, problem = jnp.zeros(q), bundle.problem.constellation, bundle.problem
+
+    def compute(block):
+        return evaluate(g, p, problem, _frames(block))
+
+    def collect(block, result):
+        n = block.b - block.a
+        visit(block, np.asarray(result[0])[:n], np.asarray(result[1])[:n])
+
+    bundle.chunks.blocks(compute, collect)
 
 
 # ----------------------------------------------------------------------------- building
@@ -548,36 +629,38 @@ def chunk_size(n: int, chunk: int | None) -> int:
     return 256 if n <= 4096 else 1024 if n <= 65536 else 2048
 
 
-def chunked_frames(data: CalibrationData, sqrt_w: np.ndarray, size: int) -> Frames:
-    """The recording's frames as `(chunks, size, ...)` (the last chunk padded, weight 0)."""
-    n = data.n_frames
-    k = -(-n // size)
-    pad = k * size - n
-
-    def padded(a, fill_last=True):
-        a = np.asarray(a)
-        if pad:
-            tail = np.repeat(a[-1:], pad, axis=0) if fill_last else np.zeros((pad, *a.shape[1:]))
-            a = np.concatenate([a, tail])
-        return jax.device_put(a.reshape(k, size, *a.shape[1:]))
-
-    return Frames(
-        time=padded(data.time),
-        direction=padded(data.direction),
-        moving=padded(data.moving),
-        drift=padded(data.drift),
-        measured=padded(data.measured),
-        sqrt_weight=padded(sqrt_w, fill_last=False),
-        base_from_flange=jnp.zeros((k, size, 7)),
+def tracker_frames(
+    data: CalibrationData, weights: Weights, size: int, block: int | None = None
+) -> TrackerFrames:
+    """The frames of `data` as the kernels read them, in chunks of `size` frames and blocks
+    of `BLOCK_FRAMES` (`block`) or fewer (a recording shorter than a block is one block of
+    as many chunks as it needs)."""
+    per = max(1, (_calib_frames.BLOCK_FRAMES if block is None else int(block)) // size)
+    per = min(per, -(-data.n_frames // size))
+    return TrackerFrames(
+        positions=data.positions,
+        columns=data.columns,
+        frame=data.frame,
+        time=data.time,
+        drift=data.drift,
+        direction=data.direction,
+        moving=data.moving,
+        weights=weights,
+        size=size,
+        per=per,
     )
 
 
-def with_weights(chunks: Frames, w: np.ndarray) -> Frames:
-    """`chunks` with the per-observation weights `w` `(frames, leds)` [1/m²]."""
-    k, size = chunks.time.shape[:2]
-    s = np.zeros((k * size, w.shape[1]))
-    s[: w.shape[0]] = np.sqrt(w)
-    return eqx.tree_at(lambda f: f.sqrt_weight, chunks, jax.device_put(s.reshape(k, size, -1)))
+def whole(frames: TrackerFrames) -> Frames:
+    """All frames at once, `(frames, ...)` (padding of weight zero included): for the
+    pure residual function on small recordings."""
+    parts = [frames.block(i).frames for i in range(frames.n_blocks)]
+    return Frames(
+        **{
+            k: jnp.asarray(np.concatenate([b[k].reshape(-1, *b[k].shape[2:]) for b in parts]))
+            for k in parts[0]
+        }
+    )
 
 
 #: assumed probe uncertainty: position [m], rotation [rad]
@@ -638,15 +721,18 @@ def _probe_terms(g, problem: BundleProblem, obs: ProbeObservations):
 
 class BundleData(eqx.Module):
     """What the normal equations of a bundle problem read besides θ: the problem at its
-    current values, the tracker frames in chunks, the constellation basis, the optional
-    probe poses and the Gaussian prior of the estimated terms that carry one (on θ
-    entries of g; none: `no_prior()`)."""
+    current values, the tracker frames (`TrackerFrames`, read block by block), the
+    constellation basis, the optional probe poses and the Gaussian prior of the
+    estimated terms that carry one (on θ entries of g; none: `no_prior()`)."""
 
     problem: BundleProblem
-    chunks: Frames
+    chunks: TrackerFrames | None = eqx.field(static=True)
     basis: Float[Array, "leds3 c"]
     probe: ProbeObservations | None
     prior: GaussianPrior = eqx.field(default_factory=no_prior)
+
+    def with_frames(self, frames: TrackerFrames | None) -> BundleData:
+        return dataclasses.replace(self, chunks=frames)
 
 
 def prior_values(g: Array, data: BundleData) -> Array:
@@ -674,27 +760,39 @@ def split_theta(theta: Array, data: BundleData) -> tuple[Array, Array]:
     return theta[:q], p
 
 
+@composed
 def bundle_normal(theta: Array, data: BundleData):
     """``(H, b, cost)`` of the bundle problem in θ (`robtraj.estimate._solve`): LED
-    observations accumulated over the chunks, plus the probe poses, plus the prior of
-    the estimated terms that carry one (`with_prior`)."""
-    g, p = split_theta(theta, data)
+    observations accumulated over the frames, block by block, plus the probe poses, plus
+    the prior of the estimated terms that carry one (`with_prior`)."""
+    g, p = _split_theta(theta, data.with_frames(None))
     terms = normal_equations(g, p, data.problem, data.chunks)
-    return with_prior(*_in_theta(g, data, terms)[:3], g, data)
+    return _normal_in_theta(g, data.with_frames(None), terms)
 
 
 @eqx.filter_jit
-def bundle_normal_clustered(
-    theta: Array, data: BundleData, cluster: Int[Array, "chunks chunk"], n_clusters: int
-):
+def _split_theta(theta, data: BundleData):
+    return split_theta(theta, data)
+
+
+@eqx.filter_jit
+def _normal_in_theta(g, data: BundleData, terms):
+    return with_prior(*_in_theta(g, data, terms)[:3], g, data)
+
+
+def bundle_normal_clustered(theta: Array, data: BundleData, cluster: np.ndarray, n_clusters: int):
     """`bundle_normal`, and the normal matrix `(G, P, P)` and score ``b`` `(G, P)` of each
     cluster of frames in θ (`cluster` as in `normal_equations_clustered`; each probe pose
     is a cluster of its own, after them): the input of `robust_covariance` (the prior is
     in the whole problem's, no cluster's)."""
-    g, p = split_theta(theta, data)
-    terms, (hgg, hgp, hpp, cg, cp_) = normal_equations_clustered(
-        g, p, data.problem, data.chunks, cluster, n_clusters
-    )
+    g, p = _split_theta(theta, data.with_frames(None))
+    terms, per = normal_equations_clustered(g, p, data.problem, data.chunks, cluster, n_clusters)
+    return _clustered_in_theta(g, data.with_frames(None), terms, per, n_clusters)
+
+
+@eqx.filter_jit
+def _clustered_in_theta(g, data: BundleData, terms, per, n_clusters: int):
+    hgg, hgp, hpp, cg, cp_ = per
     h, b, c, probe = _in_theta(g, data, terms)
     h, b, c = with_prior(h, b, c, g, data)
     hs = jax.vmap(h_in_theta, in_axes=(0, 0, 0, None))(hgg, hgp, hpp, data.basis)
@@ -750,15 +848,7 @@ def residuals(theta: Array, data: BundleData) -> Float[Array, " r"]:
     at θ, all frames at once: the pure function whose chunk-accumulated normal equations
     `bundle_normal` computes (``H = JᵀJ``, ``b = −Jᵀr`` with J the Jacobian of this)."""
     g, p = split_theta(theta, data)
-    frames = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), data.chunks)
+    with jax.ensure_compile_time_eval():  # the frames are read, not traced
+        frames = whole(data.chunks)
     pred = predict(g, p, data.problem, frames)
     return (frames.sqrt_weight[..., None] * (frames.measured - pred)).reshape(-1)
-
-
-def at_estimate(bundle: BundleData, q: int, n_frames: int):
-    """The residuals of the problem at its current values (θ = 0), per observation of the
-    first `n_frames` frames (NumPy): unweighted `(frames, leds, 3)` [m], the emission
-    angles [rad] and the squared norms `(frames, leds)` [m²]."""
-    d, theta = evaluate(jnp.zeros(q), bundle.problem.constellation, bundle.problem, bundle.chunks)
-    d, theta = np.asarray(d)[:n_frames], np.asarray(theta)[:n_frames]
-    return d, theta, np.einsum("fli,fli->fl", d, d)  # no (frames, leds, 3) temporary

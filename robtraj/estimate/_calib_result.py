@@ -17,6 +17,7 @@ from ._calib_residuals import Residuals
 from ._calib_setup import Setup
 from ._calib_solves import Solved
 from ._calib_uncertainty import Uncertainty
+from ._quoted_sigma import QuotedSigma, quoted_sigma, sigma_of
 
 #: version of the CALIB.json schema written (DESIGN section 8); files without one are version 1
 SCHEMA_VERSION = 2
@@ -87,6 +88,13 @@ class CalibrationResult:
     #: per parameter, the clusters the robust σ effectively rests on
     #: (`robtraj.estimate.effective_clusters`; its relative error ≈ 1/√(2·G_eff))
     clusters_effective: np.ndarray | None = None
+    #: covariance under the model-error field over the clusters' joint angles
+    #: (`robtraj.estimate.field_covariance`), same layout as `covariance`; None where
+    #: not estimated
+    covariance_field: np.ndarray | None = None
+    #: the field itself (`ModelErrorField.as_dict`: its lengths [rad], variance ratios,
+    #: white share, deviance); empty where not estimated
+    model_error: dict[str, Any] = dataclasses.field(default_factory=dict)
     #: speed [rad/s] below which a joint counted as at rest (the velocity-sign terms)
     motion_threshold: float = MOTION_THRESHOLD
     #: the robot model calibrated, as `RobotLog.model_document` (empty if not known)
@@ -105,27 +113,37 @@ class CalibrationResult:
         return float(np.asarray(self.effects.get("time_offset", 0.0)))
 
     @property
+    def quoted(self) -> QuotedSigma:
+        """The quoted σ in `parameter_names` order with the source that set each
+        (`robtraj.estimate.quoted_sigma`): the largest of Gauss–Newton, the
+        cluster-robust one (`covariance_robust`: does not shrink when the residual is
+        not noise) and the one under the model-error field (`covariance_field`: also
+        covers error shared by every cluster)."""
+
+        def same_shape(c):
+            return c if c is not None and np.shape(c) == np.shape(self.covariance) else None
+
+        return quoted_sigma(
+            sigma_of(self.covariance),
+            sigma_of(same_shape(self.covariance_robust)),
+            sigma_of(same_shape(self.covariance_field)),
+        )
+
+    @property
     def sigma(self) -> dict[str, float]:
-        """Standard deviation per parameter name, the one to quote: the larger of the
-        Gauss–Newton (`sigma_model`) and the cluster-robust one (`covariance_robust`,
-        which does not shrink when the residual is not noise; taking the larger guards
-        against its downward bias with few clusters); inf for the parameters the
-        recording does not determine (``identifiability["undetermined"]``)."""
-        var = np.clip(np.diag(self.covariance), 0, None)
-        if self.covariance_robust is not None and np.shape(self.covariance_robust) == np.shape(
-            self.covariance
-        ):
-            var = np.maximum(var, np.clip(np.diag(self.covariance_robust), 0, None))
-        return self._named_sigma(var)
+        """Standard deviation per parameter name, the one to quote (`quoted`); inf for
+        the parameters the recording does not determine
+        (``identifiability["undetermined"]``)."""
+        return self._named_sigma(self.quoted.sigma)
 
     @property
     def sigma_model(self) -> dict[str, float]:
         """Gauss–Newton standard deviation per parameter name (``s²H⁺``: right when the
         residual is noise of the assumed model), inf where undetermined."""
-        return self._named_sigma(np.clip(np.diag(self.covariance), 0, None))
+        return self._named_sigma(sigma_of(self.covariance))
 
-    def _named_sigma(self, var: np.ndarray) -> dict[str, float]:
-        out = dict(zip(self.parameter_names, np.sqrt(var).tolist()))
+    def _named_sigma(self, sigma: np.ndarray) -> dict[str, float]:
+        out = dict(zip(self.parameter_names, np.asarray(sigma).tolist()))
         for name in (self.identifiability or {}).get("undetermined", []):
             if name in out:
                 out[name] = float("inf")
@@ -162,6 +180,12 @@ class CalibrationResult:
                 "effective_clusters": None
                 if self.clusters_effective is None
                 else [_finite_or_none(x) for x in np.asarray(self.clusters_effective)],
+            },
+            "covariance_field": None
+            if self.covariance_field is None
+            else {
+                "matrix": np.asarray(self.covariance_field).tolist(),
+                "model_error": self.model_error,
             },
             "residual_rms_m": self.residual_rms_m,
             "effects": {k: np.asarray(v).tolist() for k, v in self.effects.items()},
@@ -205,6 +229,7 @@ class CalibrationResult:
 
             cov = d.get("covariance", {})
             robust = d.get("covariance_robust") or {}
+            field = d.get("covariance_field") or {}
             gauge = d.get("gauge", {})
             gauge = gauge if isinstance(gauge, dict) else {"kind": gauge}
             effects = dict(d.get("effects", {}))
@@ -244,6 +269,10 @@ class CalibrationResult:
                     np.asarray(robust["matrix"], float) if "matrix" in robust else None
                 ),
                 n_clusters=int(robust.get("clusters", 0)),
+                covariance_field=(
+                    np.asarray(field["matrix"], float) if "matrix" in field else None
+                ),
+                model_error=dict(field.get("model_error") or {}),
                 motion_threshold=float(d.get("motion_threshold_rad_s", MOTION_THRESHOLD)),
                 robot=dict(d.get("robot") or {}),
                 maps=dict(d.get("maps") or {}),
@@ -291,6 +320,10 @@ def calibration_result(
         covariance_robust=unc.covariance_robust[np.ix_(model, model)],
         clusters_effective=unc.clusters_effective[model],
         n_clusters=unc.n_clusters,
+        covariance_field=None
+        if unc.covariance_field is None
+        else unc.covariance_field[np.ix_(model, model)],
+        model_error=unc.model_error,
         residual_rms_m=float(np.sqrt(res.mean_square)),
         noise_sigma_m=float(np.sqrt(res.mean_square / 3.0)),
         gauge=st.gauge,
@@ -307,7 +340,7 @@ def calibration_result(
         residual_rms_per_led=res.rms_per_led,
         residual_rms_per_frame=res.rms_per_frame,
         residuals=res.residuals,
-        weights=recording_weights(data, solved.weights),
+        weights=None if res.weights is None else recording_weights(data, res.weights),
         outlier_frames=data.frame[outliers],
         noise_model=st.noise_info,
         initial=st.initial,

@@ -27,6 +27,7 @@ from ..recording import Pose, Recording
 from . import _calib_problem as cp
 from ._calib_clusters import frame_clusters, padded_clusters, robust_affordable
 from ._calib_data import CalibrationData, observation_weights, observations
+from ._calib_frames import Weights
 from ._calib_init import start_effects, start_poses
 from ._calib_parameters import (
     droppable,
@@ -36,11 +37,11 @@ from ._calib_parameters import (
     readable_names,
     theta_names,
 )
-from ._calib_problem import BundleData, BundleProblem, bundle_normal, bundle_normal_clustered
+from ._calib_problem import BundleData, BundleProblem, bundle_normal
 from ._compile_ahead import CompileAhead
 from ._noise import NoiseModel
 from ._prior import term_prior
-from ._solve import compile_normal, compile_steps, normal_at
+from ._solve import compile_steps, normal_at
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,8 +59,8 @@ class Setup:
     estimated: tuple[str, ...]
     in_model: np.ndarray  # θ entries of the poses, the estimated effects, the constellation
     q: int
-    w_user: np.ndarray
-    used: np.ndarray  # observations of non-zero weight
+    w_user: Weights  # the fit's weights, computed per block of frames
+    used: np.ndarray  # (frames, leds) bool: observations of non-zero weight
     names_theta: list[str]
     phi_names: list[str]
     droppable: np.ndarray
@@ -72,6 +73,8 @@ class Setup:
     noise: NoiseModel | None  # the recording's noise model where it gave the weights
     noise_info: dict[str, Any]
     ahead: CompileAhead  # the fit's later kernels, compiling on a background thread
+    #: the result keeps the `(frames, leds)` arrays (residuals, weights)
+    per_observation: bool = True
 
 
 def setup(
@@ -87,6 +90,8 @@ def setup(
     start_only: bool = False,
     solver=None,
     clustered: bool = False,
+    per_observation: bool = True,
+    block: int | None = None,
 ) -> Setup:
     """Observations, weights, start and problem of one fit. `weights` None: from the
     recording's noise model (uniform where it cannot be estimated) with `normal`, else
@@ -95,7 +100,9 @@ def setup(
     (no step is taken): LED-level effects at zero then take the rigid path even when
     free. With `normal`, the kernels of the fit (its normal equations; the steps of
     `solver`; the clustered pass with `clustered`) are compiled on a background thread
-    while the weights and the start are computed (`_compile_ahead`)."""
+    while the weights and the start are computed (`_compile_ahead`). The frames are read
+    in blocks of `block` frames (default `BLOCK_FRAMES`) whenever they are needed;
+    `per_observation`: the fit's result keeps its `(frames, leds)` arrays."""
     free, estimated = effects_in_problem(estimate, space)
     obs = observations(recording, init, weights, motion, normal, say)
     effects0 = start_effects(obs.data, free, init)
@@ -112,7 +119,7 @@ def setup(
         (q, len(names)),
         obs.start,
         (obs.probe, obs.time_offset),
-        chunk,
+        (chunk, block),
         solver if normal else None,
         normal,
         clustered,
@@ -121,20 +128,19 @@ def setup(
     z, x = start_poses(obs.data, effects0, init, say)
     w_user, noise, noise_info = observation_weights(obs)
     bundle, clusters, first = structure.result()
-    # the observations live on in the chunks; the frame-major copy is not needed again
-    data = dataclasses.replace(obs.data, measured=np.zeros((0, obs.data.n_leds, 3)))
+    data = obs.data
     del obs
     bundle = eqx.tree_at(
-        lambda b: (b.problem.camera_from_base, b.problem.flange_from_tool, b.chunks),
+        lambda b: (b.problem.camera_from_base, b.problem.flange_from_tool),
         bundle,
-        (jax.device_put(z), jax.device_put(x), cp.with_weights(bundle.chunks, w_user)),
-    )
+        (jax.device_put(z), jax.device_put(x)),
+    ).with_frames(bundle.chunks.replace(weights=w_user))
     ahead.wait(*first)
     normal0 = normal_at(bundle_normal, jnp.zeros(len(names)), bundle) if normal else None
     h0 = np.asarray(normal0[0]) if normal else np.zeros((0, 0))
     if not np.all(np.isfinite(h0)):
         raise UserError("the observations give non-finite normal equations at the start")
-    probe, basis, used = bundle.probe, np.asarray(bundle.basis), w_user > 0
+    probe, basis, used = bundle.probe, np.asarray(bundle.basis), _used(data, w_user)
     return Setup(
         data=data,
         bundle=bundle,
@@ -161,7 +167,18 @@ def setup(
         noise=noise,
         noise_info=noise_info,
         ahead=ahead,
+        per_observation=per_observation,
     )
+
+
+def _used(data: CalibrationData, w: Weights) -> np.ndarray:
+    """`(frames, leds)` bool: the observations of non-zero weight. The noise model's
+    variance is finite and positive wherever an LED is seen, so only the user's weights
+    can leave out more than the unseen."""
+    if w.user is None:
+        return data.seen
+    at = np.asarray(w.user, float)[data.frame][:, data.columns]
+    return data.seen & np.isfinite(at) & (at > 0)
 
 
 def _structure(
@@ -172,7 +189,7 @@ def _structure(
     sizes: tuple[int, int],
     start: np.ndarray,
     probe_poses: tuple,
-    chunk: int | None,
+    sizes_read: tuple[int | None, int | None],
     solver,
     normal: bool,
     clustered: bool,
@@ -211,10 +228,10 @@ def _structure(
         ),
         led_columns=start_only,
     )
-    chunks = cp.chunked_frames(data, data.seen.astype(float), cp.chunk_size(data.n_frames, chunk))
+    chunk, block = sizes_read
+    chunks = cp.tracker_frames(data, Weights(), cp.chunk_size(data.n_frames, chunk), block)
     if not kinematic:
-        fl = cp.fixed_flange_poses(data.robot, effects0, problem.log_time, problem.joints, chunks)
-        chunks = dataclasses.replace(chunks, base_from_flange=fl)
+        chunks = chunks.replace(base_from_flange=cp.flange_poses_of(problem, chunks))
     cluster = frame_clusters(data, chunks)
     blocks, at = [], 12
     for name in free:
@@ -229,13 +246,36 @@ def _structure(
         prior=term_prior(blocks),
     )
     first = []
+    # the block kernels compile for a placeholder block of the fit's shapes
+    g0, m = jnp.zeros(q), data.n_leds
+    frames = _placeholder(chunks)
     if normal:
-        theta0 = jnp.zeros(p)
-        first.append(compile_normal(ahead, bundle_normal, theta0, bundle))
+        acc, _ = cp.zero_terms(q, m)
+        first.append(ahead.submit(cp.normal_block, g0, problem.constellation, problem, frames, acc))
     if solver is not None:
         first.append(compile_steps(ahead, solver, p))
-        ahead.submit(cp.evaluate, jnp.zeros(q), problem.constellation, problem, chunks)
+        ahead.submit(cp.evaluate, g0, problem.constellation, problem, frames)
         if clustered:
             padded = padded_clusters(cluster[1])
-            ahead.submit(bundle_normal_clustered, theta0, bundle, cluster[0], padded)
+            ids = jnp.zeros((chunks.per, chunks.size), jnp.int32)
+            acc = cp.zero_terms(q, m, padded)
+            ahead.submit(
+                cp.normal_block_clustered, g0, problem.constellation, problem, frames, ids,
+                padded, acc,
+            )  # fmt: skip
     return bundle, cluster, first
+
+
+def _placeholder(frames) -> cp.Frames:
+    """Zeros of the shapes of a block of `frames` (kernels compile on these)."""
+    k, c, m, j = frames.per, frames.size, frames.n_leds, frames.direction.shape[1]
+    z = jnp.zeros
+    return cp.Frames(
+        time=z((k, c)),
+        direction=z((k, c, j)),
+        moving=z((k, c, j)),
+        drift=z((k, c)),
+        measured=z((k, c, m, 3)),
+        sqrt_weight=z((k, c, m)),
+        base_from_flange=z((k, c, 7)),
+    )

@@ -14,6 +14,7 @@ import numpy as np
 
 from .._errors import UserError
 from . import _calib_problem as cp
+from ._calib_frames import Weights
 from ._calib_problem import BundleData, bundle_normal
 from ._calib_setup import Setup
 from ._solve import Solution, default_solver, solve
@@ -50,8 +51,8 @@ class Solved:
     bundle: BundleData
     free: np.ndarray
     identifiability: dict[str, Any]
-    weights: np.ndarray
-    noise_weights: np.ndarray
+    weights: Weights
+    noise_weights: Weights
     solutions: tuple[Solution, ...]
 
     @property
@@ -112,8 +113,8 @@ def robust_passes(
         return solved
     bundle, w, sols = solved.bundle, solved.weights, list(solved.solutions)
     for it in range(_ROBUST_PASSES):
-        w = _robust_weights(st, solved, bundle, w, how.robust)
-        bundle = dataclasses.replace(bundle, chunks=cp.with_weights(bundle.chunks, w))
+        w = _robust_weights(st, solved, bundle, how.robust)
+        bundle = bundle.with_frames(bundle.chunks.replace(weights=w))
         say(f"robust ({how.robust}) pass {it + 1}: {how.method}")
         bundle, sol = _solve_pass(st, bundle, solved.free, how)
         sols.append(sol)
@@ -122,21 +123,30 @@ def robust_passes(
     return dataclasses.replace(solved, bundle=bundle, weights=w, solutions=tuple(sols))
 
 
-def _robust_weights(
-    st: Setup, solved: Solved, bundle: BundleData, w: np.ndarray, robust: str
-) -> np.ndarray:
+def _robust_weights(st: Setup, solved: Solved, bundle: BundleData, robust: str) -> Weights:
     """The IRLS weights at `bundle`'s values: the noise weights times the loss's weight
     of each observation's residual normalised by its noise and the variance factor
-    ``Σ w r² / dof`` of the weights `w` of the last solve."""
-    _, _, sq = cp.at_estimate(bundle, st.q, st.data.n_frames)
-    used, w_noise = st.used, solved.noise_weights
-    dof = max(1, 3 * int(used.sum()) - int(solved.free.sum()))
-    s2 = float(np.sum(w * sq) / dof)
-    u = np.sqrt(w_noise * sq / 3.0 / max(s2, 1e-300))
-    del sq
+    ``Σ w r² / dof`` of the weights of the last solve (those of `bundle`'s frames). The
+    loss's weights are held `(frames, leds)`; the noise weights are recomputed per block."""
+    dof = max(1, 3 * int(st.used.sum()) - int(solved.free.sum()))
+    u2 = np.zeros((st.data.n_frames, st.data.n_leds))
+    total = [0.0]
+
+    def visit(block, d, _theta):
+        sq = np.einsum("fli,fli->fl", d, d)
+        total[0] += float(np.sum(block.weights * sq))
+        u2[block.a : block.b] = block.noise * sq / 3.0
+
+    cp.over_residuals(bundle, st.q, visit)
+    s2 = total[0] / dof
+    # in place: one (frames, leds) array at a time
+    u = np.sqrt(np.divide(u2, max(s2, 1e-300), out=u2), out=u2)
     k = _ROBUST_K[robust]
-    rho = np.minimum(1.0, k / np.maximum(u, 1e-12)) if robust == "huber" else 1 / (1 + (u / k) ** 2)
-    return np.where(used, w_noise * rho, 0.0)
+    if robust == "huber":
+        rho = np.minimum(1.0, np.divide(k, np.maximum(u, 1e-12, out=u), out=u), out=u)
+    else:
+        rho = np.divide(1.0, np.add(1.0, np.square(np.divide(u, k, out=u), out=u), out=u), out=u)
+    return dataclasses.replace(solved.noise_weights, factor=np.multiply(rho, st.used, out=rho))
 
 
 def _solve_pass(st: Setup, bundle: BundleData, free, how: SolveSettings, start=None):

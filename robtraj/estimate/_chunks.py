@@ -38,6 +38,18 @@ class Columns:
         return x if self.cols is None else x[:, self.cols]
 
 
+class Scaled:
+    """A per-frame source `(N, …)` divided by `by` as it is read (float64): ``x[a:b]``."""
+
+    def __init__(self, source: FrameArray, by: float) -> None:
+        self.source, self.by = source, float(by)
+        self.shape = tuple(source.shape)
+        self.dtype = np.dtype(np.float64)
+
+    def __getitem__(self, frames: slice) -> np.ndarray:
+        return np.asarray(self.source[frames], np.float64) / self.by
+
+
 def chunk_length(n: int, chunk: int = CHUNK) -> int:
     """Frames per kernel call: `chunk`, or for shorter recordings the next power of two
     (at least 4096), so the kernels are compiled for a few shapes only."""

@@ -31,10 +31,11 @@ import numpy as np
 from ..model import emission_angle, flange_poses
 from ..recording import Recording
 from ._calib_problem import BundleData, Frames, chunk_terms, h_in_theta, tool_poses
-from ._calib_residuals import Residuals
+from ._calib_residuals import Quantile, Residuals
 from ._calib_setup import Setup
 from ._calib_solves import Solved
 from ._calib_uncertainty import Uncertainty
+from ._chunks import over_frames
 from ._noise import NoiseModel
 from ._uncertainty import column_scale, covariance, identifiability
 
@@ -259,8 +260,8 @@ def suggested_poses(
     data = st.data
     rate = 1.0 / float(np.median(np.diff(data.time))) if data.n_frames > 1 else 1.0
     nxt = next_poses(
-        solved.bundle, unc.h, solved.free, unc.s2, st.names_theta, watched,
-        _variance_model(st.noise, data.led_ids, solved.noise_weights), data.joints, rate,
+        solved.bundle.with_frames(None), unc.h, solved.free, unc.s2, st.names_theta, watched,
+        _variance_model(st.noise, data.led_ids, res.mean_weight), data.joints, rate,
         res.seen_angle, _distances_seen(recording), data.led_seen, n,
     )  # fmt: skip
     next_json = None if nxt is None else nxt.to_json()
@@ -269,16 +270,27 @@ def suggested_poses(
 
 def _distances_seen(recording: Recording) -> tuple[float, float]:
     """The range of camera distances [m] the recording saw (1st to 99th percentile,
-    widened by 5 %)."""
-    pos = np.asarray(recording.positions)
-    dist = np.linalg.norm(pos[np.isfinite(pos[..., 0])], axis=-1)
-    lo, hi = np.quantile(dist, [0.01, 0.99])
-    return 0.95 * lo, 1.05 * hi
+    widened by 5 %), in two passes over its frames."""
+    n = [0]
+
+    def count(_a, x):
+        n[0] += int(np.isfinite(x[..., 0]).sum())
+
+    over_frames(recording.positions, count)
+    lo, hi = Quantile(n[0], 0.99), Quantile(n[0], 0.99)
+
+    def keep(_a, x):
+        dist = np.linalg.norm(x[np.isfinite(x[..., 0])], axis=-1)
+        hi.add(dist)
+        lo.add(-dist)
+
+    over_frames(recording.positions, keep)
+    return -0.95 * lo.value(), 1.05 * hi.value()
 
 
-def _variance_model(noise: NoiseModel | None, led_ids: np.ndarray, w: np.ndarray):
+def _variance_model(noise: NoiseModel | None, led_ids: np.ndarray, mean_weight: float):
     """``variance_at(theta, distance, led)`` [m²] of `next_poses`: the noise model's, or
-    one variance from the weights `w` without one."""
+    one variance from the observations' mean weight without one."""
     if noise is not None:
         row = {int(i): k for k, i in enumerate(noise.led_ids)}
         level = np.array([row.get(int(i), 0) for i in led_ids])
@@ -286,7 +298,7 @@ def _variance_model(noise: NoiseModel | None, led_ids: np.ndarray, w: np.ndarray
         def variance_at(theta, r, led):
             return noise.variance_at(theta, r, level[led])
     else:
-        v = float(1.0 / np.mean(w[w > 0]))
+        v = float(1.0 / mean_weight)
 
         def variance_at(theta, r, led):
             return np.full(np.shape(theta), v)

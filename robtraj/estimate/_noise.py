@@ -47,6 +47,9 @@ MAX_TRIPLES = 8000
 VARIANCE_FLOOR = 0.02
 #: contiguous time blocks of the jackknife
 BLOCKS = 8
+#: a knot's curvature in a jackknife replicate below this fraction of the full one: not
+#: determined without the left-out block
+UNDETERMINED = 1e-9
 #: below this per-axis σ [m] (1 nm, a thousandth of the best optical tracker's noise) the
 #: LED positions carry no noise of their own: points computed from a 6-DOF pose, or
 #: rounded to a rigid body, whose variances the model cannot tell
@@ -285,7 +288,9 @@ def noise_from_triples(
     parts = [_normal_v(a[block == b], w[block == b], y[block == b]) for b in range(BLOCKS)]
     h_all = sum(q[0] for q in parts)
     r_all = sum(q[1] for q in parts)
-    means = np.array([centre_mean @ _nnls_normal(h_all - hb, r_all - rb) for hb, rb in parts])
+    means = np.array(
+        [centre_mean @ _held_out(h_all - hb, r_all - rb, np.diag(h_all), v) for hb, rb in parts]
+    )
     full = float(centre_mean @ v)
     if not full >= MIN_SIGMA**2:
         raise UserError(
@@ -325,6 +330,21 @@ def _nnls_normal(h: np.ndarray, r: np.ndarray) -> np.ndarray:
     z = np.linalg.solve(chol, r / scale)
     x, _ = nnls(chol.T, z, maxiter=50 * h.shape[0])
     return x / scale
+
+
+def _held_out(h: np.ndarray, r: np.ndarray, full_diag: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """`_nnls_normal` of a jackknife replicate (normal equations ``h v = r`` without one
+    block): a variance knot that only the left-out block reaches (its curvature below
+    `UNDETERMINED` of the full one) is not determined by the rest and stays at the full
+    fit's value `v`; the others are solved for with it held there."""
+    held = np.diag(h) <= UNDETERMINED * full_diag
+    out = v.copy()
+    if np.all(held):
+        return out
+    free = ~held
+    rhs = r[free] - h[np.ix_(free, held)] @ v[held]
+    out[free] = _nnls_normal(h[np.ix_(free, free)], rhs)
+    return out
 
 
 def _solve_level(g, w, y, s, level):

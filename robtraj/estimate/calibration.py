@@ -21,8 +21,9 @@ of the `Effects` (`estimate=`), from every usable frame:
   kinematics. `align_to_gauge` maps any (constellation, flange←tool) into this gauge.
 - **Solver**: the package's one engine (`robtraj.estimate.solve`): Optimistix
   (Levenberg–Marquardt by default, or any `optx` least-squares solver via `solver=`) on
-  the normal equations accumulated in chunks of frames (bounded memory, no Jacobian of
-  the whole recording).
+  the normal equations accumulated in chunks of frames (no Jacobian of the whole
+  recording), read from the recording block by block at every step (`_calib_frames`:
+  memory independent of the recording's length; the weights recomputed per block).
 - **Initialisation** in closed form (`_calib_init`): weighted Procrustes tool poses on
   static dwells + Shah's robot-world/hand-eye solution.
 - **Noise model**: by default every observation is weighted by the inverse of its
@@ -157,6 +158,7 @@ def fit(
     hold: Sequence[str] = (),
     robust_sigma: bool = True,
     motion_threshold: float | None = None,
+    per_observation: bool = True,
 ) -> CalibrationResult:
     """Bundle-calibrate `recording` (see the module docstring).
 
@@ -193,6 +195,10 @@ def fit(
       dictionary's velocity-sign terms (default: `init`'s, else
       `robtraj.model.MOTION_THRESHOLD`); data, not a parameter: fits that differ only
       in it share one compilation.
+    - `per_observation`: keep the `(frames, leds)` arrays in the result (`residuals`,
+      `weights`); False for a recording of any length (`recording` opened with
+      `robtraj.open_recording`: the fit reads its frames block by block, in memory
+      independent of its length).
 
     **Returns:** a `CalibrationResult` (`converged` False, with the reason in
     `convergence`, when a solve stopped before its criterion held). Raises `UserError`
@@ -212,6 +218,7 @@ def fit(
         motion=motion_threshold,
         solver=how.solver,
         clustered=robust_sigma,
+        per_observation=per_observation,
     )
     solved = weighted_solve(st, how, say)
     solved = robust_passes(st, solved, how, say)
@@ -301,12 +308,13 @@ def predict_residuals(
     space = tuple(dict.fromkeys((*calibration.estimated, *space)))
     st = setup(recording, (), calibration, None, None, lambda _m: None, False, space)
     data = st.data
-    d, _ = cp.evaluate(
-        jnp.zeros(st.q), st.bundle.problem.constellation, st.bundle.problem, st.bundle.chunks
-    )
-    d = np.asarray(d)[: data.n_frames]
     out = np.full((data.n_recording_frames, data.n_leds, 3), np.nan)
-    out[data.frame] = np.where(data.seen[..., None], d, np.nan)
+
+    def visit(block, d, _theta):
+        seen = data.seen[block.a : block.b]
+        out[data.frame[block.a : block.b]] = np.where(seen[..., None], d, np.nan)
+
+    cp.over_residuals(st.bundle, st.q, visit)
     col = {int(i): k for k, i in enumerate(data.led_ids)}
     keep = [col.get(int(i)) for i in calibration.led_ids]
     return np.stack(

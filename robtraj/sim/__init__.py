@@ -13,7 +13,12 @@ from ._scenarios import (
     iso_cube_truth,
 )
 from ._simulate import SimulatedFile, joint_dwells, simulate, simulate_to
-from ._unmodelled import PeriodicJointError, SightLineBias, VelocityDeadbandError
+from ._unmodelled import (
+    PeriodicJointError,
+    SightLineBias,
+    VelocityDeadbandError,
+    joint_harmonics,
+)
 
 __all__ = [
     "CONTROLLER_EPOCH",
@@ -33,6 +38,7 @@ __all__ = [
     "iso_cube_poses",
     "iso_cube_truth",
     "joint_dwells",
+    "joint_harmonics",
     "simulate",
     "simulate_to",
     "trapezoid_duration",

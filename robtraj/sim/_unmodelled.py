@@ -34,6 +34,21 @@ class PeriodicJointError:
         return out
 
 
+def joint_harmonics(
+    seed: int, amplitude: float, joints: int = 6, cycles: tuple[int, ...] = (1, 2, 3)
+) -> list[PeriodicJointError]:
+    """A smooth error of every joint's angle: per joint, one `PeriodicJointError` per
+    harmonic c of `cycles` with amplitude ``u·amplitude/c`` [rad], u uniform in [0.5, 1],
+    and a uniform random phase (seeded). With `amplitude` 1e-4 rad, 0.04–0.18 mm RMS at
+    the flange over the ``calibration`` scenario's poses."""
+    rng = np.random.default_rng(seed)
+    return [
+        PeriodicJointError(j, c, amplitude * rng.uniform(0.5, 1.0) / c, rng.uniform(0, 2 * np.pi))
+        for j in range(1, joints + 1)
+        for c in cycles
+    ]
+
+
 @dataclasses.dataclass(frozen=True)
 class VelocityDeadbandError:
     """Joint `joint` (1-based) trails its logged angle by ``amplitude`` [rad] against the

@@ -78,3 +78,24 @@ def valid_calibration(m: int = 4) -> dict:
         "covariance": None,
         "residual_rms_m": 5e-5,
     }
+
+
+def true_calibration(rec: Recording) -> dict:
+    """The CALIB.json document of a simulated recording's truth (covariance null: from
+    another source; the residual RMS a calibration of such a setup reports)."""
+
+    def pose(p):
+        return {"position": p.position.tolist(), "quaternion_wxyz": p.quaternion_wxyz.tolist()}
+
+    tr = rec.truth
+    return {
+        "camera_from_base": pose(tr.camera_from_base),
+        "flange_from_tool": pose(tr.flange_from_tool),
+        "constellation": {
+            "led_ids": np.asarray(rec.tool.led_ids).tolist(),
+            "positions": np.asarray(tr.constellation).tolist(),
+        },
+        "time_offset": 0.0,
+        "covariance": None,
+        "residual_rms_m": 40e-6,
+    }

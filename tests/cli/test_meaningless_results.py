@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, run_cli
+from cli_helpers import assert_one_line_error, run_cli, true_calibration
 
 from robtraj.cli import _analysis_inputs
 from robtraj.recording import write_recording
@@ -24,22 +24,7 @@ def setup(tmp_path_factory):
     rec = simulate("iso_cube", seed=3, duration=8.0, rate=25.0)
     write_recording(rec, d / "iso.h5")
     tr = rec.truth
-
-    def pose(p):
-        return {"position": p.position.tolist(), "quaternion_wxyz": p.quaternion_wxyz.tolist()}
-
-    doc = {
-        "camera_from_base": pose(tr.camera_from_base),
-        "flange_from_tool": pose(tr.flange_from_tool),
-        "constellation": {
-            "led_ids": np.asarray(rec.tool.led_ids).tolist(),
-            "positions": np.asarray(tr.constellation).tolist(),
-        },
-        "time_offset": 0.0,
-        "covariance": None,  # a calibration from another source
-        # what a calibration of this setup reports: 3-D LED residual RMS of a few 10 µm
-        "residual_rms_m": 40e-6,
-    }
+    doc = true_calibration(rec)
     (d / "same.json").write_text(json.dumps(doc))
     moved = copy.deepcopy(doc)
     moved["camera_from_base"]["position"] = (tr.camera_from_base.position + SHIFT).tolist()

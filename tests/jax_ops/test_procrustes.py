@@ -245,7 +245,15 @@ def test_property_invariant_to_weight_scale_and_recovers_exact_pose(seed, scale)
     np.testing.assert_allclose(
         np.asarray(a.quaternion_wxyz), np.asarray(b.quaternion_wxyz), atol=1e-12
     )
-    assert np.all(np.asarray(a.rms) < 1e-12)
+    # noise-free data fit to rounding: the centred coordinates carry ε·|measured| of it and
+    # the rotation amplifies that by (s1/s2)², s the model's singular values (three nearly
+    # collinear LEDs: 10⁴); over 3·10⁴ random frames the largest ratio is 2.3
+    eps = np.finfo(float).eps
+    for i in range(len(weights)):
+        on = weights[i] > 0
+        sv = np.linalg.svd(model[on] - model[on].mean(0), compute_uv=False)
+        bound = 16 * eps * np.nanmax(np.abs(measured[i][on])) * (sv[0] / sv[1]) ** 2
+        assert float(a.rms[i]) < bound, (float(a.rms[i]), bound)
 
 
 def test_tracker_like_recording():
