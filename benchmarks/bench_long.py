@@ -3,8 +3,8 @@ long recording against a short one.
 
 A recording of the `paper` scenario (18 LEDs) is simulated at RATE Hz for SHORT minutes
 and for HOURS hours (`robtraj simulate`, itself measured), then `robtraj poses`,
-`robtraj calibrate`, `robtraj deviation` (under that calibration) and `robtraj
-discrepancy` run on each, every command a child process
+`robtraj calibrate`, `robtraj deviation` and `robtraj report` (under that calibration)
+and `robtraj discrepancy` run on each, every command a child process
 of its own. Per command and length: wall time, time per frame and peak resident memory
 (the child's own ``ru_maxrss``, from `os.wait4`). A watchdog reads each child's
 resident memory every 0.2 s and stops it above `KILL_GIB` (the machine's memory is
@@ -15,7 +15,7 @@ Targets (asserted; exit 1 when missed): on the long recording every command peak
 exhaustive run.
 
     python benchmarks/bench_long.py [--hours 1] [--short 10] [--rate 1000]
-        [--commands simulate poses calibrate deviation discrepancy] [--json OUT]
+        [--commands simulate poses calibrate deviation report discrepancy] [--json OUT]
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ RESULTS = Path(__file__).resolve().parent / "results" / "long_cpu.json"
 TARGET_GIB, TARGET_RATIO = 2.0, 1.3
 #: a child above this is stopped: its figure is "more than this"
 KILL_GIB = 6.0
-COMMANDS = ("simulate", "poses", "calibrate", "deviation", "discrepancy")
+COMMANDS = ("simulate", "poses", "calibrate", "deviation", "report", "discrepancy")
 
 
 def _rss_gib(pid: int) -> float:
@@ -93,6 +93,9 @@ def _arguments(command: str, rec: Path, tmp: Path, tag: str, rate: float, second
     if command == "deviation":  # under the recording's own calibration (run before it)
         return [command, str(rec), "--calibration", str(tmp / f"{tag}_calib.json"),
                 "--json", str(tmp / f"{tag}_deviation.json")]  # fmt: skip
+    if command == "report":
+        return [command, str(rec), "--calibration", str(tmp / f"{tag}_calib.json"),
+                "--out", str(tmp / f"{tag}_report")]  # fmt: skip
     out = {"poses": "poses.h5", "calibrate": "calib.json", "discrepancy": "discrepancy.json"}
     flag = "--json" if command == "discrepancy" else "-o"
     return [command, str(rec), flag, str(tmp / f"{tag}_{out[command]}")]

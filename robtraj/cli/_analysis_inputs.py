@@ -76,7 +76,7 @@ def _calibrated_poses(rec, calib, args: argparse.Namespace):
     if calib is None:
         from ..estimate.calibration import fit
 
-        calib = fit(rec)
+        calib = fit(rec, per_observation=False)
     check_robot(calib, rec, str(args.calibration))
     if not np.isin(rec.led_ids, np.asarray(calib.led_ids)).sum() >= 3:
         raise UserError(

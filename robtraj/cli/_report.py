@@ -24,14 +24,12 @@ def register(sub) -> argparse.ArgumentParser:
     return p
 
 
-def _inputs(args: argparse.Namespace, notes: list[str]):
-    """(recording, calibration or None, base-frame poses or None): what can be had from
-    this recording; what cannot goes to `notes`."""
+def _inputs(rec, args: argparse.Namespace, notes: list[str]):
+    """(calibration or None, base-frame poses or None): what can be had from the
+    recording `rec`; what cannot goes to `notes`."""
     from ..calibration_file import check_robot, load_calibration
     from ..estimate import base_frame_poses
-    from ..recording import read_recording
 
-    rec = read_recording(args.recording)
     calib = None
     args.warnings = []
     if args.calibration:
@@ -53,7 +51,7 @@ def _inputs(args: argparse.Namespace, notes: list[str]):
         from ..estimate.calibration import fit
 
         try:
-            calib = fit(rec)
+            calib = fit(rec, per_observation=False)
         except UserError as e:
             notes.append(f"no calibration: self-calibration of the recording failed: {e}")
     bf = None
@@ -68,10 +66,11 @@ def _inputs(args: argparse.Namespace, notes: list[str]):
             "ISO 9283 and path deviation left out: no calibration, so no poses in the robot "
             "base frame"
         )
-    return rec, calib, bf
+    return calib, bf
 
 
 def run(args: argparse.Namespace) -> int:
+    from .._recording_reader import open_recording
     from ..analysis import write_tum
     from ..report import recording_report
     from ._deviation import deviation_of
@@ -80,38 +79,40 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     _output.check([args.json], [out], force=args.force)
     notes: list[str] = []
-    rec, calib, bf = _inputs(args, notes)
-    ref = dev = iso = None
-    if rec.program is not None and bf is not None:
-        try:
-            ref, dev = deviation_of(rec, bf)
-            dev.summary()  # raises when no frame lies on a linear move
-        except UserError as e:
-            ref = dev = None
-            notes.append(f"path deviation left out: {e}")
-        try:
-            iso = iso_of(rec, bf)
-            notes += [f"ISO 9283: {m}" for m in missing_characteristics(iso)]
-        except UserError as e:
-            notes.append(f"ISO 9283 left out: {e}")
-    with _output.new_folder(out) as tmp:
-        path = recording_report(
-            tmp,
-            rec,
-            calib,
-            bf,
-            deviation=dev,
-            reference=ref,
-            iso=iso,
-            name=Path(args.recording).name,
-            notes=notes,
-        )
-        if bf is not None:
-            v = bf.valid
-            write_tum(tmp / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
-            if dev is not None:
-                foot, foot_q = dev.foot[v], dev.foot_quaternion_wxyz[v]
-                write_tum(tmp / "commanded.tum", bf.time[v], foot, foot_q)
+    # the LED positions stay on disk: every pass over them reads them chunk by chunk
+    with open_recording(args.recording) as rec:
+        calib, bf = _inputs(rec, args, notes)
+        ref = dev = iso = None
+        if rec.program is not None and bf is not None:
+            try:
+                ref, dev = deviation_of(rec, bf)
+                dev.summary()  # raises when no frame lies on a linear move
+            except UserError as e:
+                ref = dev = None
+                notes.append(f"path deviation left out: {e}")
+            try:
+                iso = iso_of(rec, bf)
+                notes += [f"ISO 9283: {m}" for m in missing_characteristics(iso)]
+            except UserError as e:
+                notes.append(f"ISO 9283 left out: {e}")
+        with _output.new_folder(out) as tmp:
+            path = recording_report(
+                tmp,
+                rec,
+                calib,
+                bf,
+                deviation=dev,
+                reference=ref,
+                iso=iso,
+                name=Path(args.recording).name,
+                notes=notes,
+            )
+            if bf is not None:
+                v = bf.valid
+                write_tum(tmp / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
+                if dev is not None:
+                    foot, foot_q = dev.foot[v], dev.foot_quaternion_wxyz[v]
+                    write_tum(tmp / "commanded.tum", bf.time[v], foot, foot_q)
     path = out / path.relative_to(tmp)
     _analysis_inputs.write_json(
         args.json,

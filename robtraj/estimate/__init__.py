@@ -7,6 +7,7 @@ Bundle calibration lives in `robtraj.estimate.calibration`.
 """
 
 from ._base_frame import base_frame_poses
+from ._chunks import visible_frames
 from ._clock import (
     ClockAlignment,
     align_clocks,
@@ -18,7 +19,11 @@ from ._clock import (
 )
 from ._model_error import ModelErrorField, field_covariance
 from ._noise import NoiseModel, estimate_noise
-from ._observation_noise import observation_angles, observation_noise
+from ._observation_noise import (
+    observation_angles,
+    observation_noise,
+    observation_noise_source,
+)
 from ._poses import (
     PoseEstimate,
     chunked_led_variance,
@@ -77,6 +82,8 @@ __all__ = [
     "estimate_noise",
     "observation_angles",
     "observation_noise",
+    "observation_noise_source",
+    "visible_frames",
     "RCOND",
     "GaussianPrior",
     "LeastSquares",

@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..recording import FrameArray
+from ..recording import FrameArray, finite_points
 
 CHUNK = 65536  # frames per kernel call: bounded memory on whole recordings
 
@@ -107,3 +107,15 @@ def over_frames(source: FrameArray, visit: Callable, chunk: int = CHUNK, extra: 
         return (source[a : min(n, a + chunk + extra)],)
 
     over_chunks(n, chunk, prepare, lambda x: x, visit)
+
+
+def visible_frames(source: FrameArray, chunk: int = CHUNK) -> np.ndarray:
+    """`(N, M)` bool: the point `(N, M, 3)` of `source` finite in that frame (as
+    `Recording.visible`), read chunk by chunk."""
+    out = np.empty(source.shape[:2], bool)
+
+    def visit(a, x):
+        out[a : a + x.shape[0]] = finite_points(x)
+
+    over_frames(source, visit, chunk)
+    return out

@@ -81,28 +81,41 @@ def default_window(time: np.ndarray) -> int:
 
 
 def chunked_led_variance(
-    positions: FrameArray, window: int, variant: str, chunk: int = CHUNK
+    positions: FrameArray,
+    window: int,
+    variant: str,
+    chunk: int = CHUNK,
+    keep: np.ndarray | None = None,
 ) -> np.ndarray:
-    """`led_variance` over a whole recording in chunks with a halo of half a window."""
-    (out,) = chunked_led_variances(positions, window, (variant,), chunk)
+    """`led_variance` over a whole recording in chunks with a halo of half a window;
+    `keep`: the LED columns to return (`(N, len(keep))`; computed with all LEDs, as the
+    variants compare each LED with the others)."""
+    (out,) = chunked_led_variances(positions, window, (variant,), chunk, keep)
     return out
 
 
 def chunked_led_variances(
-    positions: FrameArray, window: int, variants: tuple[str, ...], chunk: int = CHUNK
+    positions: FrameArray,
+    window: int,
+    variants: tuple[str, ...],
+    chunk: int = CHUNK,
+    keep: np.ndarray | None = None,
 ) -> tuple[np.ndarray, ...]:
-    """`led_variances` (several variants, one pass) over a whole recording in chunks."""
-    n = positions.shape[0]
+    """`led_variances` (several variants, one pass) over a whole recording in chunks, of
+    the LED columns `keep` (all when None)."""
+    n, m = positions.shape[:2]
     h = window // 2
     size = chunk_length(n, chunk)
-    out = np.empty((len(variants), *positions.shape[:2]))
+    cols = np.arange(m) if keep is None else np.asarray(keep)
+    out = np.empty((len(variants), n, cols.size))
 
     def prepare(a):
         return (jax.device_put(slab(positions, a, size, h, np.nan)),)
 
     def collect(a, v):
         b = min(n, a + size)
-        out[:, a:b] = np.asarray(v)[:, : b - a]
+        v = np.asarray(v)[:, : b - a]
+        out[:, a:b] = v if keep is None else v[..., cols]
 
     over_chunks(n, size, prepare, lambda x: variance_chunk(x, window, variants), collect)
     return tuple(out)

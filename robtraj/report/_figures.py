@@ -14,6 +14,10 @@ import numpy as np  # noqa: E402
 _DPI = 110
 
 
+#: time bins of the visibility image beyond which frames are shown as a fraction seen
+IMAGE_COLUMNS = 2000
+
+
 def _save(fig, path: str | os.PathLike) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -123,9 +127,12 @@ def visibility_figure(
     variance: np.ndarray | None = None,
     title: str = "LEDs seen by the camera (black) over time",
 ) -> Path:
-    """Paper Fig. 3: visibility image `(N, M)` (LED vs time) and, if given, the LED variance
-    `(N, M)` [m²] of the three LEDs whose visibility changes most, as a std in µm, on an
-    axis clipped by `robust_limit` (values above it drawn at the limit and marked)."""
+    """Paper Fig. 3: visibility image `(N, M)` (LED vs time; longer recordings shown as
+    the fraction of frames seen in each of `IMAGE_COLUMNS` time bins) and, if given, the
+    LED variance [m²] of the three LEDs whose visibility changes most (`most_changing`),
+    as a std in µm, on an axis clipped by `robust_limit` (values above it drawn at the
+    limit and marked). `variance` is `(N, M)`, or `(N, 3)` for those three LEDs in that
+    order."""
     t = time - time[0]
     m = visible.shape[1]
     ids = np.arange(m) if led_ids is None else np.asarray(led_ids)
@@ -133,7 +140,7 @@ def visibility_figure(
     fig, axes = plt.subplots(rows, 1, figsize=(10, 3.5 * rows), sharex=True,
                              constrained_layout=True, squeeze=False)  # fmt: skip
     a0 = axes[0, 0]
-    a0.imshow(np.asarray(visible, float).T, aspect="auto", interpolation="nearest",
+    a0.imshow(_binned(visible).T, aspect="auto", interpolation="nearest",
               cmap="Greys", vmin=0, vmax=1, extent=(t[0], t[-1], m + 0.5, 0.5))  # fmt: skip
     step = max(1, m // 24)
     a0.set_yticks(np.arange(1, m + 1)[::step], [str(i) for i in ids[::step]], fontsize=7)
@@ -141,10 +148,12 @@ def visibility_figure(
     a0.set_title(title)
     if variance is not None:
         a1 = axes[1, 0]
-        changes = np.abs(np.diff(np.asarray(visible, int), axis=0)).sum(0)
-        pick = np.argsort(-(changes + 1e-3 * visible.sum(0)))[:3]
+        pick = most_changing(visible)
+        variance = np.asarray(variance)
+        if variance.shape[1] == m:
+            variance = variance[:, pick]
         with np.errstate(invalid="ignore"):
-            std = np.sqrt(np.asarray(variance)[:, pick]) * 1e6
+            std = np.sqrt(variance) * 1e6
         top, n_clipped = robust_limit(std)
         for j, k in enumerate(pick):
             a1.plot(t, np.minimum(std[:, j], top), lw=0.8, label=f"LED {ids[k]}")
@@ -160,6 +169,24 @@ def visibility_figure(
         a1.grid(True, alpha=0.3)
     axes[-1, 0].set_xlabel("time [s]")
     return _save(fig, path)
+
+
+def most_changing(visible: np.ndarray, k: int = 3) -> np.ndarray:
+    """Columns of the `k` LEDs whose visibility `(N, M)` changes most often (ties: the
+    most seen first)."""
+    changes = np.count_nonzero(visible[1:] != visible[:-1], axis=0)
+    return np.argsort(-(changes + 1e-3 * np.count_nonzero(visible, axis=0)), kind="stable")[:k]
+
+
+def _binned(visible: np.ndarray) -> np.ndarray:
+    """`visible` `(N, M)` as float, or for more than `IMAGE_COLUMNS` frames the fraction
+    of frames seen in each of `IMAGE_COLUMNS` equal time bins `(IMAGE_COLUMNS, M)`."""
+    n = visible.shape[0]
+    if n <= IMAGE_COLUMNS:
+        return np.asarray(visible, float)
+    edges = np.linspace(0, n, IMAGE_COLUMNS + 1).astype(np.int64)
+    counts = np.add.reduceat(np.asarray(visible, np.int64), edges[:-1], axis=0)
+    return counts / np.diff(edges)[:, None]
 
 
 def robust_limit(values: np.ndarray, k: float = 10.0) -> tuple[float, int]:

@@ -9,7 +9,7 @@ import numpy as np
 
 from .._errors import UserError
 from ._discrepancy_figures import noise_figure
-from ._figures import visibility_figure
+from ._figures import most_changing, visibility_figure
 from ._html import Figure, Section, Table
 from ._report_part import ReportPart, left_out
 from ._tool_poses import ToolPoses
@@ -18,12 +18,15 @@ from ._tool_poses import ToolPoses
 def led_part(out: Path, rec, poses: ToolPoses) -> ReportPart:
     """LED visibility over time and the moving-window LED variance of the paper's Figure 3
     (figure `out/leds.png`), over the pose fit's window (the default window without
-    poses)."""
-    from ..estimate import chunked_led_variance, default_window
+    poses). The positions are read chunk by chunk (`rec` may be opened lazily); of the
+    variance, only the three LEDs the figure shows are kept."""
+    from ..estimate import chunked_led_variance, default_window, visible_frames
 
     est = poses.estimate
     window = est.window if est is not None else default_window(np.asarray(rec.time))
-    variance = chunked_led_variance(np.asarray(rec.positions), window, "paper")
+    visible = visible_frames(rec.positions)
+    pick = most_changing(visible)
+    variance = chunked_led_variance(rec.positions, window, "paper", keep=pick)
     return ReportPart(
         Section(
             "LED visibility and variance (paper Figure 3)",
@@ -32,7 +35,7 @@ def led_part(out: Path, rec, poses: ToolPoses) -> ReportPart:
                     visibility_figure(
                         out / "leds.png",
                         rec.time,
-                        rec.visible,
+                        visible,
                         led_ids=rec.led_ids,
                         variance=variance,
                     ),
@@ -48,15 +51,16 @@ def led_part(out: Path, rec, poses: ToolPoses) -> ReportPart:
 
 
 def noise_part(out: Path, rec) -> ReportPart:
-    """The recording's noise model (`robtraj.estimate.observation_noise`): figure and the
-    σ table at its knots; left out with the reason when it cannot be estimated."""
-    from ..estimate import observation_noise
+    """The recording's noise model (`robtraj.estimate.observation_noise_source`, read
+    chunk by chunk): figure and the σ table at its knots; left out with the reason when
+    it cannot be estimated."""
+    from ..estimate import observation_noise_source
 
     title = "Noise of the recording"
     if rec.tool is None:
         return left_out(title, "no tool constellation: the LEDs' rigid pairs are unknown.")
     try:
-        model, _ = observation_noise(rec)
+        model, _ = observation_noise_source(rec)
     except UserError as e:
         return left_out(title, f"{e}.")
     sigma = np.sqrt(model.variance) * 1e6

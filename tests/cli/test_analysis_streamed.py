@@ -1,6 +1,7 @@
-"""`deviation` and `iso9283` read the LED positions by frame ranges (`open_recording`):
-their base-frame poses equal those of the recording read whole, with and without a
-calibrated tracker scale (divided out as the frames are read)."""
+"""`deviation`, `iso9283` and `report` read the LED positions by frame ranges
+(`open_recording`): their base-frame poses equal those of the recording read whole, with
+and without a calibrated tracker scale (divided out as the frames are read); the
+report's LED visibility, variance and noise model equal those of the whole recording."""
 
 from __future__ import annotations
 
@@ -11,11 +12,19 @@ import numpy as np
 import pytest
 from cli_helpers import true_calibration
 
+from robtraj import open_recording
 from robtraj.calibration_file import load_calibration
 from robtraj.cli import _analysis_inputs, main
 from robtraj.cli._deviation import deviation_of
-from robtraj.estimate import base_frame_poses
+from robtraj.estimate import (
+    base_frame_poses,
+    chunked_led_variance,
+    observation_noise,
+    observation_noise_source,
+    visible_frames,
+)
 from robtraj.recording import read_recording, write_recording
+from robtraj.report._figures import IMAGE_COLUMNS, _binned, most_changing
 from robtraj.sim import simulate
 
 
@@ -59,3 +68,54 @@ def test_the_commands_run_on_a_recording_opened_by_frame_ranges(recorded, tmp_pa
         args = [command, str(recorded / "iso.h5"), "--calibration", str(recorded / "plain.json")]
         assert main([*args, "--json", str(out), "--quiet"]) == code
         assert json.loads(out.read_text())
+
+
+def test_report_runs_on_a_recording_opened_by_frame_ranges(recorded, tmp_path):
+    """`report` end to end on the lazily opened recording, with the same deviation as
+    the `deviation` command."""
+    calib = str(recorded / "plain.json")
+    out, dev = tmp_path / "report.json", tmp_path / "deviation.json"
+    rec = str(recorded / "iso.h5")
+    assert main(["report", rec, "--calibration", calib, "--out", str(tmp_path / "r"),
+                 "--json", str(out), "--quiet"]) == 0  # fmt: skip
+    assert main(["deviation", rec, "--calibration", calib, "--json", str(dev), "--quiet"]) == 0
+    report = json.loads(out.read_text())
+    assert (tmp_path / "r" / "leds.png").stat().st_size > 10_000
+    assert (tmp_path / "r" / "noise_model.png").exists()
+    assert report["deviation"] == json.loads(dev.read_text())["summary"]
+
+
+def test_led_sections_read_by_frame_ranges_equal_the_whole_recording(recorded):
+    """Visibility, the variance of the LEDs the figure shows and the noise model, each
+    read in chunks that do not divide the recording (a ragged last chunk), against the
+    recording read whole."""
+    whole = read_recording(recorded / "iso.h5")
+    with open_recording(recorded / "iso.h5") as rec:
+        n = rec.n_frames
+        chunk = 97  # prime, and not a divisor of n
+        assert n % chunk
+        visible = visible_frames(rec.positions, chunk)
+        np.testing.assert_array_equal(visible, whole.visible)
+        pick = most_changing(visible)
+        part = chunked_led_variance(rec.positions, 21, "paper", chunk, keep=pick)
+        model, _ = observation_noise_source(rec)
+    full = chunked_led_variance(whole.positions, 21, "paper")
+    np.testing.assert_allclose(part, full[:, pick], rtol=1e-10, equal_nan=True)
+    direct, _ = observation_noise(whole)
+    np.testing.assert_allclose(model.variance, direct.variance, rtol=1e-10)
+    # the figure's LEDs: most visibility changes, as counted directly
+    changes = np.abs(np.diff(whole.visible.astype(int), axis=0)).sum(0)
+    assert set(changes[pick]) == set(np.sort(changes)[-3:])
+
+
+def test_long_visibility_is_shown_as_the_fraction_seen_per_time_bin():
+    rng = np.random.default_rng(0)
+    n = 3 * IMAGE_COLUMNS + 7
+    visible = rng.random((n, 5)) < 0.7
+    binned = _binned(visible)
+    assert binned.shape == (IMAGE_COLUMNS, 5)
+    edges = np.linspace(0, n, IMAGE_COLUMNS + 1).astype(int)
+    direct = np.array([visible[a:b].mean(0) for a, b in zip(edges[:-1], edges[1:])])
+    np.testing.assert_allclose(binned, direct, rtol=1e-15)
+    short = visible[:IMAGE_COLUMNS]
+    np.testing.assert_array_equal(_binned(short), short.astype(float))

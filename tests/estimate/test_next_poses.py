@@ -29,7 +29,13 @@ def test_information_of_the_recordings_own_frames_is_its_normal_matrix(constant_
     q = interpolate_joints(
         jnp.asarray(data.log_time), jnp.asarray(data.joints), jnp.asarray(data.time)
     )
-    sw = np.asarray(st.bundle.chunks.sqrt_weight).reshape(-1, data.n_leds)[: data.n_frames]
+    frames = st.bundle.chunks
+    sw = np.concatenate(
+        [
+            frames.block(i).frames["sqrt_weight"].reshape(-1, data.n_leds)
+            for i in range(frames.n_blocks)
+        ]
+    )[: data.n_frames]
     total = np.asarray(_information(st.bundle, q, jnp.asarray(sw))).sum(0)
     d = np.sqrt(np.diag(st.h0))
     ok = d > 0
