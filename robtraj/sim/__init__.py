@@ -13,6 +13,7 @@ from ._scenarios import (
     iso_cube_truth,
 )
 from ._simulate import SimulatedFile, joint_dwells, simulate, simulate_to
+from ._static_poses import POSE_NOISE, UR10_RANGES, static_pose_series
 from ._unmodelled import (
     PeriodicJointError,
     SightLineBias,
@@ -41,6 +42,9 @@ __all__ = [
     "joint_harmonics",
     "simulate",
     "simulate_to",
+    "static_pose_series",
+    "POSE_NOISE",
+    "UR10_RANGES",
     "trapezoid_duration",
     "trapezoid_progress",
 ]

@@ -6,40 +6,19 @@ refit, and the quoted σ under a smooth model error no estimated effect models."
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 import pytest
 
 from robtraj.analysis import _pose_cv as cv, _pose_fit as pf, real_data as rd
-from robtraj.model import Effects, flange_poses, ur10
-from robtraj.sim import PeriodicJointError
+from robtraj.sim import POSE_NOISE, UR10_RANGES, PeriodicJointError, static_pose_series
 
-#: tracker noise of the synthetic series: position [m] per axis, rotation [rad] per axis
-NOISE = (20e-6, 2e-5)
-#: joint ranges [rad] like Series B's
-RANGES = [(-3.1, -0.8), (-2.4, 0.1), (-2.2, 2.2), (-3.5, 0.0), (-2.5, 0.1), (-1.0, 1.0)]
+NOISE = POSE_NOISE
 
 
 def _series(n, seed, hidden=(), name="S"):
     """`n` static poses of a nominal UR10 whose logged joint angles carry the `hidden`
     unmodelled errors (`robtraj.sim`), measured with `NOISE`."""
-    rng = np.random.default_rng(seed)
-    q = np.stack([rng.uniform(lo, hi, n) for lo, hi in RANGES], 1)
-    log = q.copy()
-    for e in hidden:
-        log = e.log(np.arange(n, dtype=float), log)
-    fl = jax.jit(flange_poses)(ur10(), Effects.zeros(6), jnp.asarray(q), jnp.zeros((n, 6)))
-    cam = jaxlie.SE3.from_rotation_and_translation(
-        jaxlie.SO3.from_z_radians(0.6), jnp.array([2.0, -1.0, 0.4])
-    )
-    probe = jaxlie.SE3.from_translation(jnp.array([0.0, 0.01, 0.09]))
-    pose = jax.vmap(lambda f: cam @ jaxlie.SE3(f) @ probe)(fl.wxyz_xyz)
-    dp = rng.normal(0, NOISE[0], (n, 3))
-    dr = rng.normal(0, NOISE[1], (n, 3))
-    noisy = jax.vmap(lambda p, t, w: jaxlie.SE3(p) @ jaxlie.SE3.exp(jnp.concatenate([t, w])))(
-        pose.wxyz_xyz, jnp.asarray(dp), jnp.asarray(dr)
-    )
-    return rd.PoseSeries(name, log, np.asarray(noisy.wxyz_xyz))
+    return rd.PoseSeries(name, *static_pose_series(n, seed, hidden))
 
 
 def test_a_map_recovers_a_hidden_high_harmonic_joint_error_within_its_posterior_sigma():
@@ -53,7 +32,7 @@ def test_a_map_recovers_a_hidden_high_harmonic_joint_error_within_its_posterior_
     assert f.converged
     m = f.maps()[2]
     k = m["knots"]
-    lo, hi = RANGES[1]
+    lo, hi = UR10_RANGES[1]
     inside = m["estimated"] & (((k - lo) % (2 * np.pi)) <= hi - lo)
     truth = amp * np.sin(cycles * k + phase)
     h = 2 * np.pi / k.size
