@@ -34,6 +34,14 @@ def observation_angles(rec: Recording) -> Float[np.ndarray, "frames leds"]:
     return np.where(rec.visible & est.valid[:, None] & on_tool[None], ang, np.nan)
 
 
+def _tool_columns(rec: Recording) -> np.ndarray:
+    """Recording columns of the tool's LEDs (all without a tool)."""
+    ids = np.asarray(rec.led_ids)
+    if rec.tool is None:
+        return np.arange(ids.size)
+    return np.flatnonzero(np.isin(ids, np.asarray(rec.tool.led_ids)))
+
+
 def observation_noise(
     rec: Recording, angles: Float[np.ndarray, "frames leds"] | None = None
 ) -> tuple[NoiseModel, Float[np.ndarray, "frames leds"]]:
@@ -46,12 +54,7 @@ def observation_noise(
     if angles is None:
         angles = observation_angles(rec)
     ids = np.asarray(rec.led_ids)
-    on_tool = (
-        np.isin(ids, np.asarray(rec.tool.led_ids))
-        if rec.tool is not None
-        else np.ones(ids.size, bool)
-    )
-    cols = np.flatnonzero(on_tool)
+    cols = _tool_columns(rec)
     pos = rec.positions if cols.size == ids.size else rec.positions[:, cols]
     th = angles if cols.size == ids.size else angles[:, cols]
     model, v = noise_and_variance(pos, th, ids[cols])
@@ -108,12 +111,7 @@ def observation_noise_source(
     as an `ObservationVariance` that computes it for any frames instead of the
     `(frames, leds)` array. Raises `UserError` as `observation_noise`."""
     ids = np.asarray(rec.led_ids)
-    on_tool = (
-        np.isin(ids, np.asarray(rec.tool.led_ids))
-        if rec.tool is not None
-        else np.ones(ids.size, bool)
-    )
-    cols = np.flatnonzero(on_tool)
+    cols = _tool_columns(rec)
     source = Columns(rec.positions, cols)
     n = source.shape[0]
     pose = {"position": None, "quaternion_wxyz": None, "valid": None}
