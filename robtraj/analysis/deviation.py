@@ -199,7 +199,6 @@ def path_deviation(
     backtrack: float = 1.0,
     jump_tolerance: float | None = None,
     window: int | None = None,
-    chunk: int = 1 << 16,
 ) -> DeviationResult:
     """Match every measured pose to the commanded path and measure the deviation.
 
@@ -225,7 +224,6 @@ def path_deviation(
       neighbour counts as a jump to another pass; default 5 reference spacings.
     - `window`: intervals searched ahead of the previous match; default: enough for the
       largest step between two frames (at least 16).
-    - `chunk`: frames per k-d-tree query batch (bounds the memory).
 
     **Returns:** a `DeviationResult`.
     """
@@ -233,85 +231,127 @@ def path_deviation(
     quat = np.asarray(measured_quaternion_wxyz, np.float64)
     if pos.shape[0] != quat.shape[0]:
         raise UserError(f"{pos.shape[0]} measured positions but {quat.shape[0]} orientations")
-    n_frames = pos.shape[0]
-    ref_p = reference.position
-    n_int = ref_p.shape[0] - 1
-    k = int(min(k, ref_p.shape[0]))
+    n_int = reference.position.shape[0] - 1
+    k = int(min(k, reference.position.shape[0]))
     seen = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(quat), axis=1)
     idx_seen = np.flatnonzero(seen)
-    p = pos[idx_seen]
-
-    # candidates: each of the k nearest samples proposes its better adjacent interval
-    tree = cKDTree(ref_p)
-    cand = np.empty((p.shape[0], k), np.int64)
-    cand_t = np.empty((p.shape[0], k))
-    cand_d = np.empty((p.shape[0], k))
-    for lo in range(0, p.shape[0], chunk):
-        pc = p[lo : lo + chunk]
-        _, nearest = tree.query(pc, k=k, workers=-1)
-        nearest = nearest.reshape(pc.shape[0], k)
-        before = np.clip(nearest - 1, 0, n_int - 1)
-        after = np.clip(nearest, 0, n_int - 1)
-        tb, db = point_segment(pc[:, None], ref_p[before], ref_p[before + 1])
-        ta, da = point_segment(pc[:, None], ref_p[after], ref_p[after + 1])
-        use_after = da <= db
-        cand[lo : lo + chunk] = np.where(use_after, after, before)
-        cand_t[lo : lo + chunk] = np.where(use_after, ta, tb)
-        cand_d[lo : lo + chunk] = np.where(use_after, da, db)
-
-    u = cand + cand_t  # fractional interval index: monotone in path progress
-    best_free = np.argmin(cand_d, axis=1)
-    rows = np.arange(p.shape[0])
-    held = np.zeros(p.shape[0], bool)
-    if monotone and p.shape[0] > 0:
-        if window is None:
-            step = np.linalg.norm(np.diff(p, axis=0), axis=1).max(initial=0.0)
-            spacing = float(np.median(np.diff(reference.progress))) if n_int else 1.0
-            window = int(max(16, np.ceil(2.0 * step / max(spacing, 1e-12)) + 8))
-        chosen_u, held = _track(reference, p, u, cand_d, outlier_distance, backtrack, window)
-    else:
-        chosen_u = u[rows, best_free]
-    interval = np.clip(np.floor(chosen_u).astype(np.int64), 0, n_int - 1)
-
-    # exact foot point on the chosen interval; reorientations in place project by angle
-    a, b = ref_p[interval], ref_p[interval + 1]
-    t, dist = point_segment(p, a, b)
-    qa, qb = reference.quaternion_wxyz[interval], reference.quaternion_wxyz[interval + 1]
-    degenerate = np.sum((b - a) ** 2, axis=1) <= _EPS_LENGTH**2
-    if np.any(degenerate):
-        t = np.where(degenerate, _project_on_arc(qa, qb, quat[idx_seen]), t)
-    foot = a + t[:, None] * (b - a)
-    foot_q = slerp(qa, qb, t)
     s_ref = reference.progress
-    progress = s_ref[interval] + t * (s_ref[interval + 1] - s_ref[interval])
-    err = rotation_angle(foot_q, quat[idx_seen])
-
-    free_int = np.clip(cand[rows, best_free], 0, n_int - 1)
-    free_s = s_ref[free_int] + cand_t[rows, best_free] * (s_ref[free_int + 1] - s_ref[free_int])
     if jump_tolerance is None:
         jump_tolerance = 5.0 * float(np.median(np.diff(s_ref))) if n_int else 0.0
-    # another pass that is really nearer (repeated identical passes are equally near)
-    free_d = cand_d[rows, best_free]
-    jumped = (np.abs(free_s - progress) > jump_tolerance) & (free_d < dist - _JUMP_MARGIN)
+    if window is None:
+        spacing = float(np.median(np.diff(s_ref))) if n_int else 1.0
+        window = int(max(16, np.ceil(2.0 * _largest_step(pos, idx_seen) / max(spacing, 1e-12)) + 8))
+    out = _empty_result(pos.shape[0])
+    match = _Match(reference, cKDTree(reference.position), k, outlier_distance, backtrack, window)
+    u_prev = jnp.asarray(0.0)  # the path's start; if the first frame is far, re-acquire
+    for lo in range(0, idx_seen.size, _SCAN_BLOCK):
+        rows = idx_seen[lo : lo + _SCAN_BLOCK]
+        u_prev = match.block(pos[rows], quat[rows], u_prev, monotone, jump_tolerance, out, rows)
+    return out
 
-    def full(values: np.ndarray, fill: Any) -> np.ndarray:
-        out = np.full((n_frames, *values.shape[1:]), fill, dtype=values.dtype)
-        out[idx_seen] = values
-        return out
 
+def _largest_step(pos: np.ndarray, idx_seen: np.ndarray, chunk: int = _SCAN_BLOCK) -> float:
+    """The largest distance [m] between consecutive seen positions, `chunk` rows at a time."""
+    step = 0.0
+    for lo in range(0, max(idx_seen.size - 1, 0), chunk):
+        p = pos[idx_seen[lo : lo + chunk + 1]]
+        step = max(step, float(np.linalg.norm(np.diff(p, axis=0), axis=1).max(initial=0.0)))
+    return step
+
+
+def _empty_result(n_frames: int) -> DeviationResult:
+    """A `DeviationResult` of `n_frames` unseen frames, filled block by block."""
+    nan = functools.partial(np.full, fill_value=np.nan)
     return DeviationResult(
-        distance=full(dist, np.nan),
-        orientation_error=full(err, np.nan),
-        deviation=full(p - foot, np.nan),
-        foot=full(foot, np.nan),
-        foot_quaternion_wxyz=full(foot_q, np.nan),
-        progress=full(progress, np.nan),
-        interval=full(interval, -1),
-        target=full(reference.interval_target[interval], -1),
-        on_path=full(reference.interval_on_path[interval], False),
-        jumped=full(jumped, False),
-        held=full(held, False),
+        distance=nan(n_frames),
+        orientation_error=nan(n_frames),
+        deviation=nan((n_frames, 3)),
+        foot=nan((n_frames, 3)),
+        foot_quaternion_wxyz=nan((n_frames, 4)),
+        progress=nan(n_frames),
+        interval=np.full(n_frames, -1, np.int64),
+        target=np.full(n_frames, -1, np.int64),
+        on_path=np.zeros(n_frames, bool),
+        jumped=np.zeros(n_frames, bool),
+        held=np.zeros(n_frames, bool),
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class _Match:
+    """Matches blocks of seen frames, in time order, to the commanded path; the monotone
+    match carries over from one block to the next (`block` returns where it stands)."""
+
+    reference: ReferencePath
+    tree: cKDTree
+    k: int
+    outlier: float
+    backtrack: float
+    window: int
+
+    def candidates(self, p: np.ndarray):
+        """Per frame, each of the `k` nearest samples' better adjacent interval: its index,
+        foot parameter and distance [m]."""
+        ref_p, n_int = self.reference.position, self.reference.n_samples - 1
+        _, nearest = self.tree.query(p, k=self.k, workers=-1)
+        nearest = nearest.reshape(p.shape[0], self.k)
+        before = np.clip(nearest - 1, 0, n_int - 1)
+        after = np.clip(nearest, 0, n_int - 1)
+        tb, db = point_segment(p[:, None], ref_p[before], ref_p[before + 1])
+        ta, da = point_segment(p[:, None], ref_p[after], ref_p[after + 1])
+        use_after = da <= db
+        return (
+            np.where(use_after, after, before),
+            np.where(use_after, ta, tb),
+            np.where(use_after, da, db),
+        )
+
+    def block(self, p, q, u_prev, monotone, jump_tolerance, out: DeviationResult, rows):
+        """Match seen frames `p` `(B, 3)` [m], `q` `(B, 4)` after the match `u_prev`, write
+        them to `out` at `rows`; the match after the block's last frame."""
+        ref = self.reference
+        ref_p, n_int, s_ref = ref.position, ref.n_samples - 1, ref.progress
+        cand, cand_t, cand_d = self.candidates(p)
+        u = cand + cand_t  # fractional interval index: monotone in path progress
+        best_free = np.argmin(cand_d, axis=1)
+        i = np.arange(p.shape[0])
+        if monotone:
+            u_prev, chosen_u, held = _track(ref, p, u, cand_d, self.outlier, self.backtrack,
+                                            self.window, u_prev)  # fmt: skip
+            out.held[rows] = held
+        else:
+            chosen_u = u[i, best_free]
+        interval = np.clip(np.floor(chosen_u).astype(np.int64), 0, n_int - 1)
+
+        # exact foot point on the chosen interval; reorientations in place project by angle
+        a, b = ref_p[interval], ref_p[interval + 1]
+        t, dist = point_segment(p, a, b)
+        qa, qb = ref.quaternion_wxyz[interval], ref.quaternion_wxyz[interval + 1]
+        degenerate = np.sum((b - a) ** 2, axis=1) <= _EPS_LENGTH**2
+        if np.any(degenerate):
+            t = np.where(degenerate, _project_on_arc(qa, qb, q), t)
+        foot = a + t[:, None] * (b - a)
+        progress = s_ref[interval] + t * (s_ref[interval + 1] - s_ref[interval])
+
+        free_int = np.clip(cand[i, best_free], 0, n_int - 1)
+        free_t = cand_t[i, best_free]
+        free_s = s_ref[free_int] + free_t * (s_ref[free_int + 1] - s_ref[free_int])
+        # another pass that is really nearer (repeated identical passes are equally near)
+        free_d = cand_d[i, best_free]
+        out.jumped[rows] = (np.abs(free_s - progress) > jump_tolerance) & (
+            free_d < dist - _JUMP_MARGIN
+        )
+        foot_q = slerp(qa, qb, t)
+        out.distance[rows] = dist
+        out.orientation_error[rows] = rotation_angle(foot_q, q)
+        out.deviation[rows] = p - foot
+        out.foot[rows] = foot
+        out.foot_quaternion_wxyz[rows] = foot_q
+        out.progress[rows] = progress
+        out.interval[rows] = interval
+        out.target[rows] = ref.interval_target[interval]
+        out.on_path[rows] = ref.interval_on_path[interval]
+        return u_prev
 
 
 def _project_on_arc(qa: np.ndarray, qb: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -342,8 +382,11 @@ def _track(
     outlier: float,
     backtrack: float,
     window: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Fractional interval index per frame, non-decreasing up to `backtrack` (dwell allowed).
+    u_prev: jax.Array,
+) -> tuple[jax.Array, np.ndarray, np.ndarray]:
+    """Fractional interval index per frame of one block (at most `_SCAN_BLOCK` frames),
+    non-decreasing from `u_prev` up to `backtrack` (dwell allowed); the match after the
+    block, the indices and which frames were held.
 
     Each frame searches the intervals `[⌊u⌋ - backtrack, ⌊u⌋ + window)` ahead of the previous
     match for the nearest one; when even that is farther than `outlier`, the k-d-tree
@@ -354,25 +397,20 @@ def _track(
     b = int(np.ceil(backtrack))
     # a multiple of 8 (few distinct shapes, few compilations), at most the whole path
     width = int(min(8 * np.ceil((window + b + 1) / 8), n_int))
-    ref = jnp.asarray(reference.position)
-    # fixed-size blocks of frames (one compilation for any N), the last one padded by
-    # repeating its final frame; the match carries over from block to block
-    block = _SCAN_BLOCK
+    # a fixed-size block (one compilation for any N), padded by repeating its final frame;
+    # the padding comes after the block's last frame, so the carried match is taken there
     n = p.shape[0]
-    pad = (-n) % block
-    p_ = np.concatenate([p, np.repeat(p[-1:], pad, axis=0)])
-    cu_ = np.concatenate([cand_u, np.repeat(cand_u[-1:], pad, axis=0)])
-    cd_ = np.concatenate([cand_d, np.repeat(cand_d[-1:], pad, axis=0)])
-    u_prev = jnp.asarray(0.0)  # the path's start; if the first frame is far, re-acquire
-    us, helds = [], []
-    for lo in range(0, n + pad, block):
-        sl = slice(lo, lo + block)
-        u_prev, u, held = _track_scan(
-            ref, p_[sl], cu_[sl], cd_[sl], u_prev, outlier, float(backtrack), b, width
-        )
-        us.append(u)
-        helds.append(held)
-    return np.concatenate(us)[:n], np.concatenate(helds)[:n]
+    pad = _SCAN_BLOCK - n
+
+    def padded(x):
+        return np.concatenate([x, np.repeat(x[-1:], pad, axis=0)]) if pad else x
+
+    u, held = _track_scan(
+        jnp.asarray(reference.position), padded(p), padded(cand_u), padded(cand_d), u_prev,
+        outlier, float(backtrack), b, width,
+    )  # fmt: skip
+    u = np.asarray(u)[:n]
+    return jnp.asarray(u[-1]), u, np.asarray(held)[:n]
 
 
 @functools.partial(jax.jit, static_argnums=(7, 8))
@@ -407,5 +445,5 @@ def _track_scan(ref, p, cand_u, cand_d, u0, outlier, backtrack, b, width):
         u_new = jnp.where(reacquire, u_k, jnp.where(lost, u_prev, u_w))
         return u_new, (u_new, lost)
 
-    u_last, (u, held) = jax.lax.scan(step, jnp.asarray(u0, p.dtype), (p, cand_u, cand_d))
-    return u_last, u, held
+    _, (u, held) = jax.lax.scan(step, jnp.asarray(u0, p.dtype), (p, cand_u, cand_d))
+    return u, held

@@ -10,7 +10,7 @@ import numpy as np
 from .._errors import UserError
 from ..jax_ops import quat_conjugate, quat_multiply, quat_rotate
 from ..recording import Recording
-from ._chunks import Scaled
+from ._chunks import CHUNK, Scaled
 from ._poses import PoseEstimate, estimate_poses
 
 
@@ -61,27 +61,47 @@ def base_frame_poses(
         leds=led_ids,
         progress=progress,
     )
-    cfb = calibration.camera_from_base
-    t_cb = np.broadcast_to(np.asarray(cfb.position, float), est.position.shape).copy()
+    if tcp not in ("nominal", "calibrated"):
+        raise UserError(f"tcp must be 'nominal' or 'calibrated', got {tcp!r}")
     drift = np.asarray(calibration.effects.get("thermal_drift", np.zeros(3)), float)
-    if np.any(drift) and rec.temperature is not None:
-        t_cb += (rec.temperature.astype(float) - float(rec.temperature[0]))[:, None] * drift
-    n = est.position.shape[0]
-    q_bc = jnp.broadcast_to(quat_conjugate(jnp.asarray(cfb.quaternion_wxyz)), (n, 4))
-    q = np.asarray(quat_multiply(q_bc, jnp.asarray(np.nan_to_num(est.quaternion_wxyz))))
-    p = np.asarray(quat_rotate(q_bc, jnp.asarray(np.nan_to_num(est.position) - t_cb)))
+    temperature = rec.temperature if np.any(drift) else None
+    right = None
     if tcp == "nominal" and rec.tool is not None and rec.tool.flange_from_tool is not None:
+        right = (rec.tool.flange_from_tool, calibration.flange_from_tool)
+    n = est.position.shape[0]
+    p, q = np.empty((n, 3)), np.empty((n, 4))
+    for a in range(0, n, CHUNK):
+        b = min(n, a + CHUNK)
+        temp = None if temperature is None else (temperature[a:b], temperature[0])
+        p[a:b], q[a:b] = _to_base(
+            est.position[a:b], est.quaternion_wxyz[a:b], calibration.camera_from_base,
+            drift, temp, right,
+        )  # fmt: skip
+    valid = est.valid
+    q[~valid] = np.nan
+    p[~valid] = np.nan
+    return BaseFramePoses(np.asarray(rec.time), p, q, valid, est)
+
+
+def _to_base(position, quaternion_wxyz, camera_from_base, drift, temperature, right):
+    """Camera←tool poses of a block of frames → base←tool (NumPy `(B, 3)`, `(B, 4)`),
+    camera←base moved by `drift` per kelvin of `temperature` (the block's and the
+    recording's first) when given; `right` (nominal, calibrated flange←tool) carries the
+    calibrated tool frame to the nominal TCP."""
+    t_cb = np.broadcast_to(np.asarray(camera_from_base.position, float), position.shape).copy()
+    if temperature is not None:
+        t_cb += (temperature[0].astype(float) - float(temperature[1]))[:, None] * drift
+    n = position.shape[0]
+    q_bc = jnp.broadcast_to(quat_conjugate(jnp.asarray(camera_from_base.quaternion_wxyz)), (n, 4))
+    q = np.asarray(quat_multiply(q_bc, jnp.asarray(np.nan_to_num(quaternion_wxyz))))
+    p = np.asarray(quat_rotate(q_bc, jnp.asarray(np.nan_to_num(position) - t_cb)))
+    if right is not None:
         # tool_cal → flange → tcp_nominal: constant correction on the right
-        nom, cal = rec.tool.flange_from_tool, calibration.flange_from_tool
+        nom, cal = right
         q_cal_inv = quat_conjugate(jnp.asarray(cal.quaternion_wxyz))
         q_c = quat_multiply(q_cal_inv, jnp.asarray(nom.quaternion_wxyz))
         t_c = quat_rotate(q_cal_inv, jnp.asarray(nom.position - cal.position))
         qj = jnp.asarray(q)
         p = p + np.asarray(quat_rotate(qj, jnp.broadcast_to(t_c, p.shape)))
         q = np.asarray(quat_multiply(qj, jnp.broadcast_to(q_c, q.shape)))
-    elif tcp not in ("nominal", "calibrated"):
-        raise UserError(f"tcp must be 'nominal' or 'calibrated', got {tcp!r}")
-    valid = est.valid
-    q = np.where(valid[:, None], q, np.nan)
-    p = np.where(valid[:, None], p, np.nan)
-    return BaseFramePoses(np.asarray(rec.time), p, q, valid, est)
+    return p, q
