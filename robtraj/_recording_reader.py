@@ -143,12 +143,14 @@ class LazyFrames:
 
 
 @contextlib.contextmanager
-def open_recording(path: str | os.PathLike) -> Iterator[Recording]:
+def open_recording(path: str | os.PathLike, *, truth: bool = True) -> Iterator[Recording]:
     """Open a schema-1 recording for reading by frame ranges; yields its `Recording`.
 
     As `read_recording` (the same checks and messages), except that `positions` and
     `status` are `LazyFrames` read from the file on demand: valid until the ``with``
-    block ends, which closes the file. Everything else is read into memory.
+    block ends, which closes the file. Everything else is read into memory, except a
+    simulation's /truth without `truth` (``truth=None``: commands that never compare
+    with it).
 
     !!! Example
 
@@ -163,22 +165,22 @@ def open_recording(path: str | os.PathLike) -> Iterator[Recording]:
     name = str(path)
     file = _File(path)
     try:
-        rec = _read_lazy(file, name)
+        rec = _read_lazy(file, name, truth)
         yield rec
     finally:
         file.close()
 
 
-def _read_lazy(file: _File, name: str) -> Recording:
+def _read_lazy(file: _File, name: str, truth: bool = True) -> Recording:
     """`read_deferred` with the per-frame tracker datasets as `LazyFrames` (the bulk of a
     recording: `(N, M, 3)` positions and `(N, M)` status)."""
     wrap = {k: (lambda ds, n, key=key: LazyFrames(file, key, n)) for k, key in DEFERRABLE.items()}
     try:
-        return read_deferred(file.f, name, wrap)
+        return read_deferred(file.f, name, wrap, truth=truth)
     except OSError as e:
         if not file.reopen_swmr():
             raise UserError(f"{file.path}: unreadable HDF5 data ({_one_line(e)})") from None
     try:
-        return read_deferred(file.f, name, wrap)
+        return read_deferred(file.f, name, wrap, truth=truth)
     except OSError as e:
         raise UserError(f"{file.path}: unreadable HDF5 data ({_one_line(e)})") from None

@@ -434,15 +434,21 @@ DEFERRABLE = {"positions": "/tracker/positions", "status": "/tracker/status"}
 
 
 def read_deferred(
-    f: h5py.File, name: str, wrap: Mapping[str, Callable[[h5py.Dataset, int], Any]]
+    f: h5py.File,
+    name: str,
+    wrap: Mapping[str, Callable[[h5py.Dataset, int], Any]],
+    *,
+    truth: bool = True,
 ) -> Recording:
     """The recording in the open file `f`, read and checked as `read_recording` does,
     except the per-frame datasets named in `wrap` (keys of `DEFERRABLE`): each is left in
     the file, its shape checked without reading it, and replaced by
     ``wrap[key](dataset, n_frames)`` (e.g. an array read on demand,
-    `robtraj.open_recording`). `name` names the file in messages. Raises `OSError` where
-    HDF5 cannot read the rest."""
-    rec = _read_file(f, name, frozenset(DEFERRABLE[k] for k in wrap))
+    `robtraj.open_recording`). `name` names the file in messages. Without `truth` a
+    simulation's /truth is left unread (``truth=None``). Raises `OSError` where HDF5
+    cannot read the rest."""
+    defer = frozenset(DEFERRABLE[k] for k in wrap) | (frozenset() if truth else {"/truth"})
+    rec = _read_file(f, name, defer)
     datasets = {k: getattr(rec, k) for k in wrap if getattr(rec, k) is not None}
     for k, ds in datasets.items():
         if ds.dtype.kind not in "fiub":
@@ -547,7 +553,7 @@ def _read_from(
     f: h5py.File, name: str, used: set[str], defer: frozenset[str] = frozenset()
 ) -> Recording:
     """The recording in `f`; the datasets named in `defer` are returned unread (as
-    `h5py.Dataset`s)."""
+    `h5py.Dataset`s), and /truth is not read at all when `defer` names it."""
     g = lambda key, required=True: _get(f, key, name, used, required=required, defer=defer)  # noqa: E731
     robot = None
     if "robot" in f:
@@ -592,7 +598,9 @@ def _read_from(
     if "probe" in f:
         probe = Probe(time=g("/probe/time"), tool_pose=_get_pose(f, "/probe/tool_pose", name, used))
     truth = None
-    if "truth" in f:
+    if "truth" in f and "/truth" in defer:  # known, not read: no extras either
+        f["truth"].visit(lambda key: used.add(f"/truth/{key}"))
+    elif "truth" in f:
         effects_raw = _attr_str(f["truth"], "effects")
         truth = Truth(
             tool_pose=_get_pose(f, "/truth/tool_pose", name, used),

@@ -55,7 +55,7 @@ def load(args: argparse.Namespace, *, need_program: bool = True):
     from ..calibration_file import load_calibration
 
     calib = load_calibration(args.calibration) if args.calibration else None
-    with open_recording(args.recording) as rec:
+    with open_recording(args.recording, truth=False) as rec:
         if need_program and rec.program is None:
             raise UserError(
                 f"{args.recording}: no /program (the commanded targets) to compare with"

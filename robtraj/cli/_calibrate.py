@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
 
     _return_freed_memory()
     # the frames are read from the file block by block: memory independent of its length
-    with open_recording(args.recording) as rec:
+    with open_recording(args.recording, truth=False) as rec:
         check_leds_seen(rec, args.recording)
         init = _initial(args, rec)
         with progress_status("calibrating") as say:

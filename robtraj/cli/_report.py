@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     _output.check([args.json], [out], force=args.force)
     notes: list[str] = []
     # the LED positions stay on disk: every pass over them reads them chunk by chunk
-    with open_recording(args.recording) as rec:
+    with open_recording(args.recording, truth=False) as rec:
         calib, bf = _inputs(rec, args, notes)
         ref = dev = iso = None
         if rec.program is not None and bf is not None:

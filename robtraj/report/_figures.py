@@ -16,6 +16,30 @@ _DPI = 110
 
 #: time bins of the visibility image beyond which frames are shown as a fraction seen
 IMAGE_COLUMNS = 2000
+#: runs of frames a per-frame curve is drawn with: beyond twice as many frames, each run's
+#: smallest and largest value (far more runs than the figure has pixel columns)
+FIGURE_RUNS = 20_000
+IMAGE_CHUNK = 1 << 16  # frames compared at a time (bounded temporaries on long recordings)
+
+
+def envelope(values: np.ndarray, runs: int = FIGURE_RUNS) -> np.ndarray:
+    """Indices of the frames a figure draws of the per-frame series `values` `(N,)`: all
+    of them up to ``2 * runs`` frames; else, in each of `runs` equal runs of consecutive
+    frames, the first frame with the run's smallest and the first with its largest finite
+    value (every extreme is kept, so spikes show; a run without one is left out)."""
+    v = np.asarray(values, float)
+    n = v.shape[0]
+    if n <= 2 * runs:
+        return np.arange(n)
+    starts = np.linspace(0, n, runs + 1).astype(np.int64)[:-1]
+    run = np.repeat(np.arange(runs), np.diff(np.append(starts, n)))
+    finite = np.isfinite(v)
+    keep = []
+    for fill, reduce in ((np.inf, np.minimum), (-np.inf, np.maximum)):
+        extreme = reduce.reduceat(np.where(finite, v, fill), starts)
+        at = np.flatnonzero(finite & (v == extreme[run]))
+        keep.append(at[np.unique(run[at], return_index=True)[1]])
+    return np.unique(np.concatenate(keep))
 
 
 def _save(fig, path: str | os.PathLike) -> Path:
@@ -44,6 +68,8 @@ def path_3d_figure(
     ok = np.all(np.isfinite(position), axis=1) & np.isfinite(distance)
     p, d = position[ok] * 1e3, distance[ok] * 1e3
     vmax, n_above = robust_limit(d)
+    drawn = envelope(d)
+    p, d = p[drawn], d[drawn]
     kw = dict(c=d, s=2, cmap="viridis", vmin=0.0, vmax=vmax, zorder=1, label="measured")
     sc = ax.scatter(*p.T, **kw)
     top.scatter(p[:, 0], p[:, 1], **kw)
@@ -85,8 +111,10 @@ def deviation_figure(
         (a0, distance * 1e3, "distance [mm]"),
         (a1, np.degrees(orientation_error), "orientation error [°]"),
     ]:
-        ax.plot(s[~use], v[~use], ".", ms=1, color="0.7", label="joint moves")
-        ax.plot(s[use], v[use], ".", ms=1, color="C0", label="path")
+        for part, style in ((~use, dict(color="0.7", label="joint moves")),
+                            (use, dict(color="C0", label="path"))):  # fmt: skip
+            i = envelope(v[part])
+            ax.plot(s[part][i], v[part][i], ".", ms=1, **style)
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
     a0.set_title(title)
@@ -107,7 +135,8 @@ def velocity_figure(
     """Measured TCP speed `(N,)` [m/s → mm/s] over time [s], with the commanded speed."""
     fig, ax = plt.subplots(figsize=(10, 4), constrained_layout=True)
     t = time - time[0]
-    ax.plot(t, speed * 1e3, lw=0.7, label="measured")
+    i = envelope(speed)
+    ax.plot(t[i], speed[i] * 1e3, lw=0.7, label="measured")
     if commanded is not None:
         ax.plot(t, np.asarray(commanded) * 1e3, lw=1.0, ls="--", color="C3", label="commanded")
         ax.legend()
@@ -156,7 +185,8 @@ def visibility_figure(
             std = np.sqrt(variance) * 1e6
         top, n_clipped = robust_limit(std)
         for j, k in enumerate(pick):
-            a1.plot(t, np.minimum(std[:, j], top), lw=0.8, label=f"LED {ids[k]}")
+            i = envelope(std[:, j])
+            a1.plot(t[i], np.minimum(std[i, j], top), lw=0.8, label=f"LED {ids[k]}")
         if n_clipped:
             above = std > top
             a1.plot(t[above.any(1)], np.full(above.any(1).sum(), top), "v", color="C3",
@@ -174,7 +204,11 @@ def visibility_figure(
 def most_changing(visible: np.ndarray, k: int = 3) -> np.ndarray:
     """Columns of the `k` LEDs whose visibility `(N, M)` changes most often (ties: the
     most seen first)."""
-    changes = np.count_nonzero(visible[1:] != visible[:-1], axis=0)
+    n = visible.shape[0]
+    changes = np.zeros(visible.shape[1], np.int64)
+    for a in range(0, n - 1, IMAGE_CHUNK):
+        b = min(a + IMAGE_CHUNK, n - 1)
+        changes += np.count_nonzero(visible[a + 1 : b + 1] != visible[a:b], axis=0)
     return np.argsort(-(changes + 1e-3 * np.count_nonzero(visible, axis=0)), kind="stable")[:k]
 
 
@@ -185,7 +219,7 @@ def _binned(visible: np.ndarray) -> np.ndarray:
     if n <= IMAGE_COLUMNS:
         return np.asarray(visible, float)
     edges = np.linspace(0, n, IMAGE_COLUMNS + 1).astype(np.int64)
-    counts = np.add.reduceat(np.asarray(visible, np.int64), edges[:-1], axis=0)
+    counts = np.add.reduceat(visible, edges[:-1], axis=0, dtype=np.int64)
     return counts / np.diff(edges)[:, None]
 
 
@@ -245,10 +279,12 @@ def pose_quality_figure(
     """Per-frame RMS residual of the pose fit `(N,)` [m → µm] and LEDs used `(N,)`."""
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True, constrained_layout=True)
     t = time - time[0]
-    a0.plot(t, rms * 1e6, lw=0.6)
+    i = envelope(rms)
+    a0.plot(t[i], rms[i] * 1e6, lw=0.6)
     a0.set_ylabel("fit RMS [µm]")
     a0.set_title(title)
-    a1.step(t, n_used, where="mid", lw=0.6, color="C2")
+    i = envelope(n_used)
+    a1.step(t[i], n_used[i], where="mid", lw=0.6, color="C2")
     a1.set_ylabel("LEDs used")
     a1.set_xlabel("time [s]")
     for a in (a0, a1):

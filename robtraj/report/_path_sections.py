@@ -78,7 +78,7 @@ def speed_part(out: Path, poses: ToolPoses) -> ReportPart:
     if poses.estimate is None:
         return ReportPart()
     t, position = poses.time, poses.position
-    speed = np.linalg.norm(np.gradient(position, t, axis=0), axis=1) if t.size > 1 else t * 0
+    speed = _speed(t, position)
     return ReportPart(
         Section(
             "TCP speed",
@@ -111,3 +111,17 @@ def pose_quality_part(out: Path, poses: ToolPoses) -> ReportPart:
             ],
         )
     )
+
+
+def _speed(t: np.ndarray, position: np.ndarray, block: int = 1 << 16) -> np.ndarray:
+    """|d position / dt| `(N,)` [m/s] by `np.gradient` (central differences, one-sided
+    at the ends), `block` frames at a time with one frame either side."""
+    n = t.shape[0]
+    if n < 2:
+        return t * 0
+    speed = np.empty(n)
+    for a in range(0, n, block):
+        lo, hi = max(a - 1, 0), min(a + block + 1, n)
+        v = np.gradient(position[lo:hi], t[lo:hi], axis=0)[a - lo : a - lo + block]
+        speed[a : a + v.shape[0]] = np.linalg.norm(v, axis=1)
+    return speed

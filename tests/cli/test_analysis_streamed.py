@@ -24,7 +24,8 @@ from robtraj.estimate import (
     visible_frames,
 )
 from robtraj.recording import read_recording, write_recording
-from robtraj.report._figures import IMAGE_COLUMNS, _binned, most_changing
+from robtraj.report._figures import IMAGE_COLUMNS, _binned, envelope, most_changing
+from robtraj.report._path_sections import _speed
 from robtraj.sim import simulate
 
 
@@ -119,3 +120,37 @@ def test_long_visibility_is_shown_as_the_fraction_seen_per_time_bin():
     np.testing.assert_allclose(binned, direct, rtol=1e-15)
     short = visible[:IMAGE_COLUMNS]
     np.testing.assert_array_equal(_binned(short), short.astype(float))
+
+
+def test_figure_envelope_keeps_every_runs_extremes():
+    """Long per-frame curves are drawn by each run's extremes: compared with a direct
+    per-run min/max (NaN ignored, ties: the first frame), every extreme is kept and nothing
+    else; short series are drawn whole."""
+    rng = np.random.default_rng(3)
+    runs = 50
+    n = 7 * runs + 13
+    v = np.round(rng.normal(size=n), 1)  # ties within runs
+    v[rng.random(n) < 0.1] = np.nan
+    v[40:60] = np.nan  # a run without a finite value
+    kept = envelope(v, runs)
+    starts = np.linspace(0, n, runs + 1).astype(int)
+    expected = set()
+    for a, b in zip(starts[:-1], starts[1:]):
+        run = v[a:b]
+        if np.isfinite(run).any():
+            expected |= {a + int(np.nanargmin(run)), a + int(np.nanargmax(run))}
+    assert set(kept.tolist()) == expected
+    assert np.all(np.diff(kept) > 0)
+    np.testing.assert_array_equal(envelope(v[: 2 * runs], runs), np.arange(2 * runs))
+
+
+@pytest.mark.parametrize("n", [2, 3, 101])
+def test_speed_by_blocks_is_np_gradient(n):
+    """The report's TCP speed, block by block with one frame either side, equals
+    `np.gradient` over the whole series (uneven time steps, ragged last block)."""
+    rng = np.random.default_rng(n)
+    t = np.cumsum(rng.uniform(0.5, 1.5, n))
+    p = rng.normal(size=(n, 3))
+    want = np.linalg.norm(np.gradient(p, t, axis=0), axis=1)
+    for block in (1, 2, 7, 64):
+        np.testing.assert_array_equal(_speed(t, p, block), want)

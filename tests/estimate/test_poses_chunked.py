@@ -119,6 +119,11 @@ def test_open_recording_reads_what_read_recording_reads(recording):
         np.testing.assert_array_equal(lazy.time, rec.time)
         assert lazy.positions.shape == rec.positions.shape and lazy.n_frames == N
         assert lazy.truth is not None and lazy.tool is not None
+    # commands that never compare with the truth leave it in the file, not as extras
+    with open_recording(path, truth=False) as lazy:
+        assert lazy.truth is None and lazy.extras == {} and lazy.extra_attrs == {}
+        np.testing.assert_array_equal(lazy.time, rec.time)
+        assert lazy.tool is not None and lazy.robot is not None
 
 
 def _plain_file(path, n_time=5, n_positions=5, **attrs):
