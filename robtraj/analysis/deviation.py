@@ -27,7 +27,9 @@ from ._quat import quat_conjugate, quat_multiply, rotation_angle, slerp
 
 _EPS_LENGTH = 1e-12  # [m] intervals shorter than this are pure reorientations
 _JUMP_MARGIN = 1e-6  # [m] a jump's nearest neighbour must be nearer than this
-_SCAN_BLOCK = 1 << 15  # frames per compiled block of the monotone matching
+_SCAN_BLOCK = 1 << 15
+#: [m] path progress around a turn in place within which a frame may be turning
+TURN_WINDOW = 1e-4  # frames per compiled block of the monotone matching
 
 
 @dataclasses.dataclass(frozen=True)
@@ -198,6 +200,7 @@ def path_deviation(
     outlier_distance: float = 0.05,
     backtrack: float = 1.0,
     jump_tolerance: float | None = None,
+    turn_window: float = TURN_WINDOW,
     window: int | None = None,
 ) -> DeviationResult:
     """Match every measured pose to the commanded path and measure the deviation.
@@ -220,6 +223,11 @@ def path_deviation(
       this either, the frame keeps the previous match (`held`).
     - `backtrack`: tolerated step back, in reference intervals (noise at a dwell can move
       the foot point slightly backwards).
+    - `turn_window`: [m] a foot point this near (in path progress) to a turn in place
+      (consecutive moves that only reorient) is compared with the nearest orientation of
+      the turn as well: the position cannot tell where in the turn the robot is, nor,
+      within the measurement's noise, whether it has reached the turn. The default,
+      `TURN_WINDOW`, is above an optical CMM's position noise; set it to yours.
     - `jump_tolerance`: [m] progress difference above which the unconstrained nearest
       neighbour counts as a jump to another pass; default 5 reference spacings.
     - `window`: intervals searched ahead of the previous match; default: enough for the
@@ -242,7 +250,8 @@ def path_deviation(
         spacing = float(np.median(np.diff(s_ref))) if n_int else 1.0
         window = int(max(16, np.ceil(2.0 * _largest_step(pos, idx_seen) / max(spacing, 1e-12)) + 8))
     out = _empty_result(pos.shape[0])
-    match = _Match(reference, cKDTree(reference.position), k, outlier_distance, backtrack, window)
+    match = _Match(reference, cKDTree(reference.position), k, outlier_distance, backtrack,
+                   window, _turns(reference), turn_window)  # fmt: skip
     u_prev = jnp.asarray(0.0)  # the path's start; if the first frame is far, re-acquire
     for lo in range(0, idx_seen.size, _SCAN_BLOCK):
         rows = idx_seen[lo : lo + _SCAN_BLOCK]
@@ -288,6 +297,8 @@ class _Match:
     outlier: float
     backtrack: float
     window: int
+    turns: tuple[tuple[float, np.ndarray], ...]
+    turn_window: float
 
     def candidates(self, p: np.ndarray):
         """Per frame, each of the `k` nearest samples' better adjacent interval: its index,
@@ -341,9 +352,15 @@ class _Match:
         out.jumped[rows] = (np.abs(free_s - progress) > jump_tolerance) & (
             free_d < dist - _JUMP_MARGIN
         )
-        foot_q = slerp(qa, qb, t)
+        foot_q = np.array(slerp(qa, qb, t))
+        err = np.array(rotation_angle(foot_q, q))
+        for s_turn, members in self.turns:
+            near = np.flatnonzero(np.abs(progress - s_turn) <= self.turn_window)
+            if near.size:
+                foot_q[near], err[near] = _nearest_on_turn(ref, members, q[near], foot_q[near],
+                                                           err[near])  # fmt: skip
         out.distance[rows] = dist
-        out.orientation_error[rows] = rotation_angle(foot_q, q)
+        out.orientation_error[rows] = err
         out.deviation[rows] = p - foot
         out.foot[rows] = foot
         out.foot_quaternion_wxyz[rows] = foot_q
@@ -352,6 +369,28 @@ class _Match:
         out.target[rows] = ref.interval_target[interval]
         out.on_path[rows] = ref.interval_on_path[interval]
         return u_prev
+
+
+def _turns(reference: ReferencePath) -> tuple[tuple[float, np.ndarray], ...]:
+    """The turns in place of `reference`: per run of consecutive zero-length intervals,
+    its path progress [m] and the intervals."""
+    d = np.diff(reference.position, axis=0)
+    still = np.flatnonzero(np.sum(d * d, axis=1) <= _EPS_LENGTH**2)
+    runs = np.split(still, np.flatnonzero(np.diff(still) > 1) + 1) if still.size else []
+    return tuple((float(reference.progress[r[0]]), r) for r in runs)
+
+
+def _nearest_on_turn(reference: ReferencePath, members, q, foot_q, err):
+    """Per measured orientation `q` `(F, 4)`: the nearer of the orientation `foot_q` (error
+    `err` [rad]) and the nearest one on the arcs of the turn's intervals `members`."""
+    for r in members:
+        qa = np.broadcast_to(reference.quaternion_wxyz[r], q.shape)
+        qb = np.broadcast_to(reference.quaternion_wxyz[r + 1], q.shape)
+        on_arc = slerp(qa, qb, _project_on_arc(qa, qb, q))
+        e = rotation_angle(on_arc, q)
+        better = e < err
+        foot_q, err = np.where(better[:, None], on_arc, foot_q), np.where(better, e, err)
+    return foot_q, err
 
 
 def _project_on_arc(qa: np.ndarray, qb: np.ndarray, q: np.ndarray) -> np.ndarray:

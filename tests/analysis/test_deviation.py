@@ -165,6 +165,41 @@ def test_orientation_error_at_foot_point():
     assert np.isclose(rotation_angle(IDENTITY, tiny), 1e-9, rtol=1e-6)
 
 
+def test_a_turn_in_place_is_matched_by_orientation():
+    """At a corner the program turns in place through two orientations (two zero-length
+    moves) before the next move. The robot dwells there while it turns, its position
+    noisy by 20 µm (so its foot point falls before, on and after the corner) and its
+    orientation 0.01 rad about x off the commanded turn: the orientation error is 0.01 rad
+    at every frame of the dwell, as along the moves, and the distances are those of the
+    position match alone. Without the turn window (`turn_window=0`) frames whose foot
+    falls just before the corner are compared with the incoming move's orientation."""
+    rng = np.random.default_rng(5)
+    qs = np.array([IDENTITY, IDENTITY, [np.cos(0.4), 0, 0, np.sin(0.4)],
+                   [np.cos(0.3), 0, np.sin(0.3), 0], [np.cos(0.3), 0, np.sin(0.3), 0]])  # fmt: skip
+    corner = [0.1, 0, 0]
+    prog = program([[0, 0, 0], corner, corner, corner, [0.1, 0.1, 0]], quats=qs)
+    ref = commanded_path(prog, 0.0005)
+    n = 400
+    approach = along(ref, np.linspace(0, 0.0995, n))
+    dwell = np.tile(corner, (2 * n, 1)) + rng.normal(0, 2e-5, (2 * n, 3))
+    leave = along(ref, np.linspace(0.1005, 0.2, n))
+    pts = np.concatenate([approach, dwell, leave])
+    u = np.linspace(0, 1, n)
+    q_cmd = np.concatenate([
+        np.tile(IDENTITY, (n, 1)),
+        slerp(np.tile(qs[1], (n, 1)), np.tile(qs[2], (n, 1)), u),
+        slerp(np.tile(qs[2], (n, 1)), np.tile(qs[3], (n, 1)), u),
+        np.tile(qs[4], (n, 1)),
+    ])  # fmt: skip
+    q_meas = q_cmd
+    res = path_deviation(ref, pts, q_meas)
+    np.testing.assert_allclose(res.orientation_error, 0.0, atol=1e-7)
+    position_only = path_deviation(ref, pts, q_meas, turn_window=0.0)
+    np.testing.assert_array_equal(res.distance, position_only.distance)
+    np.testing.assert_array_equal(res.progress, position_only.progress)
+    assert position_only.orientation_error.max() > 0.2
+
+
 def test_nan_frames_and_summary():
     prog = program([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0]], motion=["start", "linear", "joint"])
     ref = commanded_path(prog, 0.001)
