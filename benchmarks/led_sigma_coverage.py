@@ -2,7 +2,7 @@
 
 A twin of the bundle calibration: `calibration` runs (40 s at 25 Hz, 15 dwells) of a
 robot whose joint angles are off by a smooth error the fitted model does not contain
-(`robtraj.sim.joint_harmonics`: on every joint, 1–3 cycles per turn of
+(`robtraj.sim.calibration_twin`, `joint_harmonics`: on every joint, 1–3 cycles per turn of
 (0.5–1)·100/c µrad, random phase; 0.04–0.18 mm RMS at the flange). Per seed, the
 rigid transforms and the constellation are compared with the truth (in the fit's gauge):
 the share within 1.96 σ, for the quoted σ (`CalibrationResult.quoted`: the largest of
@@ -22,43 +22,17 @@ import argparse
 import json
 from pathlib import Path
 
-import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
-from robtraj.estimate.calibration import align_to_gauge, fit
-from robtraj.sim import joint_harmonics, simulate
-
-AMPLITUDE = 1e-4
-
-
-def _se3(pose) -> jaxlie.SE3:
-    return jaxlie.SE3(
-        jnp.concatenate([jnp.asarray(pose.quaternion_wxyz), jnp.asarray(pose.position)])
-    )
+from robtraj.estimate.calibration import error_against, fit
+from robtraj.sim import TWIN_AMPLITUDE, calibration_twin
 
 
 def run(seed: int, duration: float) -> dict:
     """Per estimated parameter of one twin: |estimate − truth| and each source's σ."""
-    rec = simulate(
-        "calibration",
-        seed=seed,
-        duration=duration,
-        rate=25.0,
-        unmodelled=joint_harmonics(1000 + seed, AMPLITUDE),
-    )
+    rec = calibration_twin(seed, duration)
     res = fit(rec)
-    truth = rec.truth
-    p_true, fft_true = align_to_gauge(
-        res, truth.constellation, truth.flange_from_tool, led_ids=rec.tool.led_ids
-    )
-    err = np.concatenate(
-        [
-            np.asarray((_se3(truth.camera_from_base).inverse() @ _se3(res.camera_from_base)).log()),
-            np.asarray((_se3(fft_true).inverse() @ _se3(res.flange_from_tool)).log()),
-            (res.constellation - p_true).reshape(-1),
-        ]
-    )
+    err = error_against(res, rec.truth, rec.tool.led_ids)
     q = res.quoted
     ok = q.parts["gauss_newton"] > 0
     sigma = {k: s[ok] for k, s in q.parts.items()}
@@ -115,7 +89,7 @@ def main() -> None:
     doc = {
         "seeds": a.seeds,
         "duration_s": a.duration,
-        "amplitude_rad": AMPLITUDE,
+        "amplitude_rad": TWIN_AMPLITUDE,
         "parameters": int(sum(r["error"].size for r in runs)),
         "fields_found": found,
         "coverage_95": cov,

@@ -98,6 +98,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "Frames",
     "align_to_gauge",
+    "error_against",
     "bundle_normal",
     "fit",
     "predict_residuals",
@@ -137,6 +138,25 @@ def align_to_gauge(
     pg = np.asarray(jax.vmap(g.apply)(jnp.asarray(p)))
     fft = pose_se3(flange_from_tool) @ g.inverse()
     return pg, Pose.from_wxyz_xyz(fft.wxyz_xyz)
+
+
+def error_against(result: CalibrationResult, truth, led_ids) -> np.ndarray:
+    """`result`'s error against `truth` (camera←base, flange←tool and constellation of
+    LEDs `led_ids`, e.g. a simulation's `Truth`), in `result`'s gauge: camera←base and
+    flange←tool as SE(3) tangents ``log(truth⁻¹·fit)`` (translation [m], rotation [rad];
+    6 each), then the constellation `(leds·3,)` [m] in `result`'s LED order."""
+    p_true, fft_true = align_to_gauge(result, truth.constellation, truth.flange_from_tool, led_ids)
+    return np.concatenate(
+        [
+            np.asarray(
+                (
+                    pose_se3(truth.camera_from_base).inverse() @ pose_se3(result.camera_from_base)
+                ).log()
+            ),
+            np.asarray((pose_se3(fft_true).inverse() @ pose_se3(result.flange_from_tool)).log()),
+            (np.asarray(result.constellation) - p_true).reshape(-1),
+        ]
+    )
 
 
 # ----------------------------------------------------------------------------- fit

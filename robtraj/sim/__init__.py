@@ -12,7 +12,14 @@ from ._scenarios import (
     iso_cube_poses,
     iso_cube_truth,
 )
-from ._simulate import SimulatedFile, joint_dwells, simulate, simulate_to
+from ._simulate import (
+    TWIN_AMPLITUDE,
+    SimulatedFile,
+    calibration_twin,
+    joint_dwells,
+    simulate,
+    simulate_to,
+)
 from ._static_poses import POSE_NOISE, UR10_RANGES, static_pose_series
 from ._unmodelled import (
     PeriodicJointError,
@@ -34,6 +41,8 @@ __all__ = [
     "VelocityDeadbandError",
     "SCENARIOS",
     "SimulatedFile",
+    "TWIN_AMPLITUDE",
+    "calibration_twin",
     "iso_cube_corner_truth",
     "iso_cube_cycles",
     "iso_cube_poses",

@@ -163,3 +163,17 @@ def joint_dwells(
     pose = jax.vmap(lambda f: (jaxlie.SE3(f) @ tcp).wxyz_xyz)(fl.wxyz_xyz)
     pose = np.asarray(pose)
     return [Move(p[4:], p[:4], "joint", 0.0, float(dwell)) for p in pose]
+
+
+#: [rad] the scale of the joint angle error of `calibration_twin`
+TWIN_AMPLITUDE = 1e-4
+
+
+def calibration_twin(seed: int, duration: float, amplitude: float = TWIN_AMPLITUDE):
+    """A ``calibration`` run at 25 Hz of a robot whose joint angles are off by a smooth
+    error the calibration model does not contain (`joint_harmonics` of seed
+    ``1000 + seed``, scale `amplitude` [rad]): the twin the LED σ coverage is judged on."""
+    from ._unmodelled import joint_harmonics
+
+    unmodelled = joint_harmonics(1000 + seed, amplitude)
+    return simulate("calibration", seed=seed, duration=duration, rate=25.0, unmodelled=unmodelled)

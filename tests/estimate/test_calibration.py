@@ -16,6 +16,7 @@ from robtraj.estimate._calib_init import pose_pairs
 from robtraj.estimate.calibration import (
     CalibrationResult,
     align_to_gauge,
+    error_against,
     fit,
     robot_world_hand_eye,
 )
@@ -39,18 +40,8 @@ def _tangent_error(est: Pose, truth: Pose) -> np.ndarray:
 
 
 def _normalised_errors(res: CalibrationResult, rec) -> np.ndarray:
-    truth = rec.truth
     sigma = np.sqrt(np.diag(res.covariance))
-    p_true, fft_true = align_to_gauge(
-        res, truth.constellation, truth.flange_from_tool, led_ids=rec.tool.led_ids
-    )
-    err = np.concatenate(
-        [
-            _tangent_error(res.camera_from_base, truth.camera_from_base),
-            _tangent_error(res.flange_from_tool, fft_true),
-            (res.constellation - p_true).reshape(-1),
-        ]
-    )
+    err = error_against(res, rec.truth, rec.tool.led_ids)
     ok = sigma > 0  # LEDs never seen are not estimated
     return err[ok] / sigma[ok]
 

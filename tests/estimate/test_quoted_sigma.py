@@ -3,21 +3,14 @@ jackknife and the model-error field, and the source named; on simulated LED cali
 with a smooth joint-angle error the fitted model does not contain, its coverage of the
 truth."""
 
-import jax.numpy as jnp
-import jaxlie
 import numpy as np
 import pytest
 import scipy.stats
 
 from robtraj.estimate import SIGMA_SOURCES, quoted_sigma
-from robtraj.estimate.calibration import align_to_gauge, fit
-from robtraj.recording import Pose
-from robtraj.sim import joint_harmonics, simulate
+from robtraj.estimate.calibration import error_against, fit
+from robtraj.sim import calibration_twin
 
-#: [rad] the twin's joint-angle error (`joint_harmonics`: on every joint, 1–3 cycles per
-#: turn of amplitude (0.5–1)·100/c µrad and random phase; 0.04–0.18 mm RMS at the flange
-#: over a calibration's poses)
-AMPLITUDE = 1e-4
 #: the spread of a seed's coverage over its ~66 parameters is that of ~22 independent
 #: ones (40 seeds of the exhaustive twin: SD 4.5 % per seed against 2.7 % binomial):
 #: one model error biases many parameters of a seed alike
@@ -40,35 +33,14 @@ def test_the_largest_source_is_quoted_and_named():
     assert np.all(np.isnan(alone.parts["field"]))
 
 
-def _se3(pose: Pose) -> jaxlie.SE3:
-    return jaxlie.SE3(
-        jnp.concatenate([jnp.asarray(pose.quaternion_wxyz), jnp.asarray(pose.position)])
-    )
-
-
-def _twin(seed: int, duration: float):
-    """A calibration run (25 Hz) of a robot whose joint angles are off by `AMPLITUDE`."""
-    unmodelled = joint_harmonics(1000 + seed, AMPLITUDE)
-    return simulate("calibration", seed=seed, duration=duration, rate=25.0, unmodelled=unmodelled)
-
-
 def _covered(seed: int, duration: float) -> dict[str, np.ndarray]:
-    """Per estimated rigid-transform and constellation parameter of a fit of `_twin`:
+    """Per estimated rigid-transform and constellation parameter of a fit of `calibration_twin` (joint-angle error on every joint, 1–3 cycles per
+    turn of (0.5–1)·100/c µrad, random phase; 0.04–0.18 mm RMS at the flange):
     whether each source's σ and the quoted one cover the truth at 95 %
     (|estimate − truth| ≤ 1.96 σ), and the σ."""
-    rec = _twin(seed, duration)
+    rec = calibration_twin(seed, duration)
     res = fit(rec)
-    truth = rec.truth
-    p_true, fft_true = align_to_gauge(
-        res, truth.constellation, truth.flange_from_tool, led_ids=rec.tool.led_ids
-    )
-    err = np.concatenate(
-        [
-            np.asarray((_se3(truth.camera_from_base).inverse() @ _se3(res.camera_from_base)).log()),
-            np.asarray((_se3(fft_true).inverse() @ _se3(res.flange_from_tool)).log()),
-            (res.constellation - p_true).reshape(-1),
-        ]
-    )
+    err = error_against(res, rec.truth, rec.tool.led_ids)
     q = res.quoted
     assert len(res.parameter_names) == err.size  # rigid transforms and constellation only
     ok = q.parts["gauss_newton"] > 0  # LEDs never seen are not estimated
