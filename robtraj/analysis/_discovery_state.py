@@ -25,7 +25,10 @@ class Step:
     function, coefficients, words, where it acts); `replaces`: effects named before that
     it made redundant (dropped); `alternatives`: significant candidates of the round
     whose ΔBIC is within `INDISTINCT_BIC` of its own (the recording does not tell them
-    apart)."""
+    apart); `equivalent`: the candidates of its round that, fitted in its place, Vuong's
+    test on the held-out blocks does not find worse (equally supported), each with its
+    z, the held-out χ² by which it is worse and the static poses that would tell the
+    two apart (``{"effect", "heldout_z", "heldout_chi2_worse", "next_poses"}``)."""
 
     effect: str
     parameters: dict[str, tuple[float, float]]
@@ -35,6 +38,7 @@ class Step:
     term: dict[str, Any] | None = None
     replaces: tuple[str, ...] = ()
     alternatives: tuple[str, ...] = ()
+    equivalent: tuple[dict[str, Any], ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,6 +14,7 @@ import numpy as np
 from ..model import MOTION_THRESHOLD, joint_maps, term
 from ._discovery_state import Search, SearchState, Step
 from ._effect_statistics import effect_parameters, free_count, significance, without
+from ._heldout import vuong
 from ._residual_stats import structure
 from ._term_report import term_report
 
@@ -26,6 +27,11 @@ MAX_REFITS = 5
 #: ΔBIC below which the recording does not tell two candidates apart (Kass and Raftery's
 #: "very strong" evidence starts at 10)
 INDISTINCT_BIC = 10.0
+#: significant candidates besides the named one compared with it on the held-out blocks
+RIVALS = 2
+#: Vuong's z on the held-out blocks below which a rival is as well supported as the named
+#: effect (one-sided 2.5 %)
+Z_EQUIVALENT = 1.96
 
 #: a candidate the refit and the held-out check confirmed: (effect, its refit, its score)
 _Confirmed = tuple[str, Any, dict[str, Any]]
@@ -357,6 +363,65 @@ def _simpler_model(search: Search, state: SearchState, offered):
         lr, k, n_obs, likelihood_ratio=lr, delta_bic_against_replaced=float(bic_now - bic)
     )
     return c, r, score, tests, space
+
+
+def equivalence_step(search: Search, state: SearchState) -> SearchState:
+    """For each named effect: its rivals (`rivals`) each fitted in its place (the rest of
+    the model as named); one that Vuong's test on the held-out blocks does not find worse
+    (z below `Z_EQUIVALENT`) is equally supported (`Step.equivalent`), with the static
+    poses that would tell the two apart (`separating_poses`)."""
+    steps = []
+    for step in state.steps:
+        rivals = _rivals(step) if step.effect in state.named else ()
+        if rivals:
+            space = search.shared or tuple(dict.fromkeys((*state.space, *rivals)))
+            named = search.obs.heldout.chi2(state.named, search.nominal, space)
+            found = (_equivalent(search, state, step, r, named, space) for r in rivals)
+            step = dataclasses.replace(step, equivalent=tuple(e for e in found if e))
+        steps.append(step)
+    return dataclasses.replace(state, steps=tuple(steps))
+
+
+def _rivals(step: Step) -> tuple[str, ...]:
+    """The candidates of `step`'s round that might explain as much: those the score test
+    did not tell from it (`alternatives`) and the `RIVALS` next strongest significant
+    ones (by ΔBIC)."""
+    alpha = ALPHA / max(len(step.candidates), 1)
+    strong = [
+        c
+        for c in sorted(step.candidates, key=lambda c: -step.candidates[c]["delta_bic"])
+        if c != step.effect
+        and step.candidates[c]["p_value"] < alpha
+        and step.candidates[c]["delta_bic"] > 0
+    ]
+    return tuple(dict.fromkeys((*step.alternatives, *strong[:RIVALS])))
+
+
+def _equivalent(search: Search, state: SearchState, step: Step, rival: str, named_chi2,
+                space) -> dict | None:  # fmt: skip
+    """`rival` in place of `step.effect`: Vuong's z and the held-out χ² by which it is
+    worse than the named model (`named_chi2`, `HeldOut.chi2`), with the poses that tell
+    the two apart, when z is below `Z_EQUIVALENT`; else None."""
+    from ..estimate.calibration import fit
+    from ._separating_poses import separating_poses
+
+    obs = search.obs
+    named = tuple(rival if e == step.effect else e for e in state.named)
+    search.say(f"is {rival} in place of {step.effect} equally supported?")
+    z, worse = vuong(named_chi2, obs.heldout.chi2(named, search.nominal, space))
+    if z >= Z_EQUIVALENT:
+        return None
+    r = fit(obs.rec, estimate=named, weights=obs.weights, init=search.nominal, space=space,
+            robust_sigma=False)  # fmt: skip
+    poses = separating_poses(
+        obs.rec, obs.noise, obs.angles, (step.effect, state.current), (rival, r)
+    )
+    return {
+        "effect": rival,
+        "heldout_z": z,
+        "heldout_chi2_worse": worse,
+        "next_poses": None if poses is None else poses.to_json(),
+    }
 
 
 def maps_step(search: Search, state: SearchState, max_steps: int) -> SearchState:

@@ -37,6 +37,7 @@ from ._discovery_steps import (
     ALPHA as ALPHA,
     INDISTINCT_BIC as INDISTINCT_BIC,
     MAX_REFITS as MAX_REFITS,
+    equivalence_step,
     maps_step,
     search_rounds,
     simpler_model_step,
@@ -134,6 +135,7 @@ class DiscrepancyResult:
                     **({"term": s.term} if s.term is not None else {}),
                     "replaces": list(s.replaces),
                     "alternatives": list(s.alternatives),
+                    "equally_supported": list(s.equivalent),
                 }
                 for s in self.steps
             ],
@@ -237,6 +239,8 @@ def discover(
     state = simpler_model_step(search, state)
     # structure left against joint angles: their angle error maps
     state = maps_step(search, state, max_steps)
+    # two stories the recording supports equally: said, with the poses that tell them apart
+    state = equivalence_step(search, state)
     return _result(search, state)
 
 

@@ -82,9 +82,11 @@ def main(argv: list[str] | None = None) -> int:
 
     set_quiet(args.quiet)
     if args.command in _COMPILING:
+        from .._heap import return_freed_memory
         from .._jax_cache import enable_compilation_cache
 
         enable_compilation_cache()
+        return_freed_memory()
     try:
         code = args.func(args)
     except UserError as e:

@@ -106,7 +106,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--max-steps must be at least 1, not {args.max_steps}")
     from ..estimate.calibration import fit
 
-    _return_freed_memory()
     # the frames are read from the file block by block: memory independent of its length
     with open_recording(args.recording, truth=False) as rec:
         check_leds_seen(rec, args.recording)
@@ -170,18 +169,6 @@ def run(args: argparse.Namespace) -> int:
     print("\n".join(lines))
     warn_undetermined(res, str(out), "iso9283, deviation and report results depend")
     return 0 if res.converged else NOT_CONVERGED
-
-
-def _return_freed_memory() -> None:
-    """Have glibc hand buffers of 1 MiB or more back to the system when they are freed:
-    every pass over the recording allocates and frees blocks of frames, which its heap
-    would otherwise keep (resident memory growing with the passes, not with the data)."""
-    import ctypes
-
-    try:
-        ctypes.CDLL("libc.so.6").mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
-    except (OSError, AttributeError):  # not glibc
-        pass
 
 
 def _initial(args: argparse.Namespace, rec):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from . import _output
@@ -101,10 +102,19 @@ def run(args: argparse.Namespace) -> int:
                 f"  acts over {s['term']['variable']} from {lo:.2f} to {hi:.2f} rad, at least "
                 f"half its peak in {100 * acts['share_above_half_peak']:.0f} % of the recording"
             )
-        if s["alternatives"]:
+        for e in s["equally_supported"]:
             print(
-                f"  not told apart from: {', '.join(s['alternatives'])} (ΔBIC within "
-                f"{INDISTINCT_BIC:.0f}; a recording with more of their variables' range would)"
+                f"  equally supported: {e['effect']} in its place (on the held-out blocks "
+                f"worse by χ² {e['heldout_chi2_worse']:.1f} only, Vuong z {e['heldout_z']:.2f}): "
+                "this recording cannot tell them apart"
+            )
+            _print_separating(e["next_poses"])
+        others = [a for a in s["alternatives"]
+                  if a not in {e["effect"] for e in s["equally_supported"]}]  # fmt: skip
+        if others:
+            print(
+                f"  not told apart by the score test from: {', '.join(others)} (ΔBIC within "
+                f"{INDISTINCT_BIC:.0f}), but worse on the held-out blocks"
             )
         if s["replaces"]:
             print(
@@ -258,3 +268,17 @@ def _cross_series(args: argparse.Namespace) -> int:
                     figs.append(Path(args.report) / name)
         print(f"figures: {', '.join(str(f) for f in figs) or 'none (no maps named)'}")
     return 0
+
+
+def _print_separating(poses: dict | None) -> None:
+    """The static poses that would tell two equally supported models apart."""
+    if poses is None:
+        print("  no pose in reach would show enough LEDs to tell them apart")
+        return
+    print(
+        f"  measure to tell them apart ({poses['dwell_s']:g} s dwell each; the χ² each adds "
+        f"against the wrong one, the whole recording: {poses['chi2_recording']:.1f}):"
+    )
+    for q, c in zip(poses["joints_rad"], poses["chi2_per_dwell"]):
+        angles = ", ".join(f"{math.degrees(a):.1f}" for a in q)
+        print(f"    joints [{angles}] °: χ² {c:.0f}")
