@@ -29,6 +29,9 @@ MAX_REFITS = 5
 INDISTINCT_BIC = 10.0
 #: significant candidates besides the named one compared with it on the held-out blocks
 RIVALS = 2
+#: how far below the named effect's score statistic a rival's may lie: absolute, and
+#: relative (the score test's first-order error grows with the effect)
+RIVAL_MARGIN = (100.0, 1e-3)
 #: Vuong's z on the held-out blocks below which a rival is as well supported as the named
 #: effect (one-sided 2.5 %)
 Z_EQUIVALENT = 1.96
@@ -385,14 +388,23 @@ def equivalence_step(search: Search, state: SearchState) -> SearchState:
 def _rivals(step: Step) -> tuple[str, ...]:
     """The candidates of `step`'s round that might explain as much: those the score test
     did not tell from it (`alternatives`) and the `RIVALS` next strongest significant
-    ones (by ΔBIC)."""
-    alpha = ALPHA / max(len(step.candidates), 1)
+    ones (by ΔBIC) whose score statistic is within `RIVAL_MARGIN` of its own (two models
+    whose predictions differ by D in χ² differ by about D in the statistic, and Vuong's z
+    is about √D / 2: far beyond the margin no test on held-out blocks could find them
+    equal)."""
+    scores = step.candidates
+    alpha = ALPHA / max(len(scores), 1)
+    own = scores.get(step.effect, {}).get("statistic")
+    if own is None:
+        return step.alternatives
+    margin = RIVAL_MARGIN[0] + RIVAL_MARGIN[1] * own
     strong = [
         c
-        for c in sorted(step.candidates, key=lambda c: -step.candidates[c]["delta_bic"])
+        for c in sorted(scores, key=lambda c: -scores[c]["delta_bic"])
         if c != step.effect
-        and step.candidates[c]["p_value"] < alpha
-        and step.candidates[c]["delta_bic"] > 0
+        and scores[c]["p_value"] < alpha
+        and scores[c]["delta_bic"] > 0
+        and own - scores[c].get("statistic", -np.inf) <= margin
     ]
     return tuple(dict.fromkeys((*step.alternatives, *strong[:RIVALS])))
 

@@ -125,7 +125,8 @@ def separating_poses(
     (name_a, fit_a), (name_b, fit_b) = a, b
     robot = robot_from_log(rec.robot)
     normals = _normals(rec, fit_a.led_ids)
-    q = candidates(rec.robot.joints, robot.joint_limits)
+    limits = None if robot.joint_limits is None else np.asarray(robot.joint_limits)
+    q = candidates(np.asarray(rec.robot.joints), limits)
     leds_a, theta = _leds(robot, fit_a, jnp.asarray(q), normals)
     leds_b, _ = _leds(robot, fit_b, jnp.asarray(q), normals)
     seen_angle = float(np.nanmax(angles))

@@ -58,5 +58,5 @@ def test_equally_supported_stories_are_said_and_the_suggested_poses_tell_them_ap
     value = np.asarray(after.calibration.effects["joint_compliance"], float)
     sigma = after.calibration.sigma
     for k, name in enumerate(effect_component_names("joint_compliance", value.shape)):
-        if np.isfinite(sigma[name]):
+        if 0 < sigma[name] < np.inf:  # joint 1 bears no gravity torque: not estimated
             assert abs(value[k] - COMPLIANCE[k]) < 3 * sigma[name], (name, value[k], sigma[name])
