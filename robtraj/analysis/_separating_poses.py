@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..estimate import distances_seen
 from ..model import (
     effect_component_names,
     emission_angle,
@@ -131,7 +132,7 @@ def separating_poses(
     leds_b, _ = _leds(robot, fit_b, jnp.asarray(q), normals)
     seen_angle = float(np.nanmax(angles))
     dist = np.linalg.norm(leds_a, axis=-1)
-    lo, hi = _distances_seen(rec)
+    lo, hi = distances_seen(rec)
     seen = (theta <= seen_angle) & (dist >= lo) & (dist <= hi)
     ok = seen.sum(1) >= MIN_LEDS
     if not ok.any():
@@ -210,11 +211,3 @@ def _levels(noise, led_ids) -> np.ndarray:
     """The noise model's level row of each of `led_ids` (0 where it has none)."""
     row = {int(i): k for k, i in enumerate(np.asarray(noise.led_ids))}
     return np.array([row.get(int(i), 0) for i in np.asarray(led_ids)])
-
-
-def _distances_seen(rec) -> tuple[float, float]:
-    """The camera distances [m] the recording saw: 1st to 99th percentile, widened by 5 %."""
-    x = np.asarray(rec.positions)
-    d = np.linalg.norm(x[np.isfinite(x[..., 0])], axis=-1)
-    lo, hi = np.percentile(d, [1, 99])
-    return 0.95 * float(lo), 1.05 * float(hi)

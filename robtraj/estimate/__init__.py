@@ -18,6 +18,7 @@ from ._clock import (
     tracker_speeds,
 )
 from ._model_error import ModelErrorField, field_covariance
+from ._next_poses import distances_seen
 from ._noise import NoiseModel, estimate_noise
 from ._observation_noise import (
     observation_angles,
@@ -84,6 +85,7 @@ __all__ = [
     "observation_noise",
     "observation_noise_source",
     "visible_frames",
+    "distances_seen",
     "RCOND",
     "GaussianPrior",
     "LeastSquares",

@@ -262,14 +262,14 @@ def suggested_poses(
     nxt = next_poses(
         solved.bundle.with_frames(None), unc.h, solved.free, unc.s2, st.names_theta, watched,
         _variance_model(st.noise, data.led_ids, res.mean_weight), data.joints, rate,
-        res.seen_angle, _distances_seen(recording), data.led_seen, n,
+        res.seen_angle, distances_seen(recording), data.led_seen, n,
     )  # fmt: skip
     next_json = None if nxt is None else nxt.to_json()
     return dataclasses.replace(unc, identifiability={**ident, "next_poses": next_json})
 
 
-def _distances_seen(recording: Recording) -> tuple[float, float]:
-    """The range of camera distances [m] the recording saw (1st to 99th percentile,
+def distances_seen(recording: Recording) -> tuple[float, float]:
+    """The range of camera distances [m] the recording's LEDs were seen at (1st to 99th percentile,
     widened by 5 %), in two passes over its frames."""
     n = [0]
 
