@@ -3,7 +3,7 @@ which their predictions of the LEDs differ most against the recording's noise.
 
 Two models that fit a recording equally well agree over the joint angles it reached;
 they part where it did not go. The candidates are the recording's own joint
-configurations (evenly spread) with one joint at a time turned by `TURNS` (inside the
+configurations (evenly spread, as for `robtraj calibrate`'s next poses) with one joint at a time turned by `TURNS` (inside the
 robot's joint limits where it has them). A candidate counts where at least
 `MIN_LEDS` LEDs would be seen (emission angle and camera distance inside what the
 recording saw, under the first model). With `a` taken as the truth, a pose is worth
@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..estimate import distances_seen
+from ..estimate import DWELL_S, MIN_LEDS, base_configurations, distances_seen
 from ..model import (
     effect_component_names,
     emission_angle,
@@ -35,13 +35,8 @@ from ..model import (
     robot_from_log,
 )
 
-#: [s] of static dwell each suggested pose stands for
-DWELL_S = 1.0
-#: logged joint configurations the candidates start from (evenly spread)
-BASE_CONFIGURATIONS = 40
 #: [rad] the turns of one joint that make the candidates
 TURNS = np.deg2rad([-60.0, -40.0, -20.0, 20.0, 40.0, 60.0])
-MIN_LEDS = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,11 +67,11 @@ class SeparatingPoses:
 
 
 def candidates(joints: np.ndarray, limits: np.ndarray | None) -> np.ndarray:
-    """`(K, joints)` configurations [rad]: `BASE_CONFIGURATIONS` of the logged `joints`
-    with one joint turned by each of `TURNS`, those inside `limits` `(joints, 2)`."""
-    q = np.asarray(joints, float)
-    base = q[np.unique(np.linspace(0, q.shape[0] - 1, BASE_CONFIGURATIONS).round().astype(int))]
-    j = q.shape[1]
+    """`(K, joints)` configurations [rad]: the logged `joints` evenly spread
+    (`base_configurations`) with one joint turned by each of `TURNS`, those inside
+    `limits` `(joints, 2)`."""
+    base = base_configurations(joints)
+    j = base.shape[1]
     steps = (np.eye(j)[:, None, :] * TURNS[None, :, None]).reshape(-1, j)
     out = (base[:, None, :] + steps[None]).reshape(-1, j)
     if limits is not None:

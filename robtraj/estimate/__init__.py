@@ -18,7 +18,7 @@ from ._clock import (
     tracker_speeds,
 )
 from ._model_error import ModelErrorField, field_covariance
-from ._next_poses import distances_seen
+from ._next_poses import DWELL_S, MIN_LEDS, base_configurations, distances_seen
 from ._noise import NoiseModel, estimate_noise
 from ._observation_noise import (
     observation_angles,
@@ -86,6 +86,9 @@ __all__ = [
     "observation_noise_source",
     "visible_frames",
     "distances_seen",
+    "base_configurations",
+    "DWELL_S",
+    "MIN_LEDS",
     "RCOND",
     "GaussianPrior",
     "LeastSquares",

@@ -76,10 +76,17 @@ class NextPoses:
         }
 
 
+def base_configurations(joints: np.ndarray, n: int = BASE_CONFIGURATIONS) -> np.ndarray:
+    """Up to `n` of the logged joint configurations `joints` `(N, joints)` [rad], evenly
+    spread over the log: where candidate poses start from."""
+    q = np.asarray(joints, float)
+    return q[np.unique(np.linspace(0, q.shape[0] - 1, n).round().astype(int))]
+
+
 def candidate_joints(joints: np.ndarray, n_base: int = BASE_CONFIGURATIONS) -> np.ndarray:
     """`(K, joints)` candidate configurations [rad] from logged ones `joints`."""
     q = np.asarray(joints, float)
-    base = q[np.unique(np.linspace(0, q.shape[0] - 1, n_base).round().astype(int))]
+    base = base_configurations(q, n_base)
     wrist = list(range(max(0, q.shape[1] - 3), q.shape[1]))
     steps = []
     for k in (1, 2):
