@@ -89,7 +89,9 @@ class Search:
     (the effects `include`d from the start), whose LED order every later fit keeps, with
     3σ̂² `var3` [m²] and the weights `aligned_weights` [1/m²] `(N, M)` in that order and
     its number of residuals `n_obs`; the `candidates` to search, the space every fit
-    shares (`shared`; None for a space per round), and `say`, which reports progress."""
+    shares (`shared`; None for a space per round), and `say`, which reports progress;
+    `screened`: how many candidates a screen chose `candidates` from (constructed
+    terms), the count the significance level is divided by when it exceeds theirs."""
 
     obs: Observations
     nominal: Any
@@ -100,6 +102,7 @@ class Search:
     include: tuple[str, ...]
     shared: tuple[str, ...] | None
     say: Callable[[str], None]
+    screened: int = 0
 
     def gap(self, res) -> float:
         """The gap of the fit `res` [m], less the noise its parameters absorb."""

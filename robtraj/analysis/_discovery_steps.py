@@ -62,7 +62,7 @@ def _round(search: Search, state: SearchState) -> SearchState:
     if not remaining:
         return dataclasses.replace(state, stopped="no_candidates")
     search.say(f"score test of {len(remaining)} candidate effects")
-    alpha = ALPHA / len(remaining)
+    alpha = ALPHA / max(len(remaining), search.screened)
     scores = _score_tests(search, state.current, remaining)
     significant = [
         c
@@ -226,7 +226,8 @@ def _without_if_redundant(
     k = free_count(state.current, old)
     lr = float(r.chi2 - state.current.chi2)
     test = significance(lr, max(k, 1), search.n_obs)
-    needed = test["p_value"] < ALPHA / max(len(search.candidates), 1) and test["delta_bic"] > 0
+    count = max(len(search.candidates), search.screened, 1)
+    needed = test["p_value"] < ALPHA / count and test["delta_bic"] > 0
     if needed:
         h = search.obs.heldout.gap(keep, r, state.space)
         needed = h - state.heldout_gap > state.floor
@@ -454,3 +455,101 @@ def maps_step(search: Search, state: SearchState, max_steps: int) -> SearchState
     search.say(f"structure left against {', '.join(term(m).frame_variable for m in maps)}: maps")
     offered = dataclasses.replace(search, candidates=maps, shared=None)
     return search_rounds(offered, dataclasses.replace(state, stopped=""), max_steps)
+
+
+def constructed_step(search: Search, state: SearchState, max_steps: int) -> SearchState:
+    """While the gap is above its floor with structure left: the joint angle errors built
+    from the recording's signals (`robtraj.model._constructed`) screened at once on the
+    fit's moments (`_constructed_terms.screen`), the strongest offered to a round of
+    the search (score test, refit, held-out blocks) at the significance level divided by
+    the number screened; up to `max_steps` rounds, each screening the model as it stands.
+    They come after the dictionary and the maps: a fixed term that explains the structure
+    is named as such."""
+    from ._constructed_terms import screen
+
+    for _ in range(max_steps):
+        if state.gaps[-1] <= state.floor:
+            return dataclasses.replace(state, stopped="gap_within_floor")
+        left = structure(state.current.residuals, search.aligned_weights, search.obs.variables)
+        if not any(v["significant"] for v in left.values()):
+            return state
+        search.say("constructing terms from the recording's signals")
+        exclude = frozenset(state.named) | state.tried | {r["effect"] for r in state.rejected}
+        found = screen(search, state, exclude)
+        if not found.offered:
+            return state
+        offered = dataclasses.replace(
+            search, candidates=found.offered, shared=None, screened=found.screened
+        )
+        before = state
+        state = _round(offered, dataclasses.replace(state, stopped=""))
+        if len(state.steps) > len(before.steps):
+            state = _simpler_form(search, before, state)
+        if state.stopped:
+            return state
+    return state
+
+
+def _simpler_forms(effect: str) -> tuple[str, ...]:
+    """The constructed terms simpler than constructed term `effect`: each of its two
+    factors alone, and a joint angle's first harmonic as the angle itself (a linear
+    error); those the dictionary or the library hold left out."""
+    from ..model import (
+        ConstructedFactor as Factor,
+        constructed_groups as candidate_groups,
+        constructed_name as name_of,
+    )
+
+    t = term(effect)
+    forms = [(f,) for f in t.factors] if len(t.factors) == 2 else []
+    if len(t.factors) == 1 and t.factors[0].harmonic == 1:
+        f = t.factors[0]
+        forms.append((Factor(f.signal, f.joint),))
+    valid = {name_of(j, f) for j, f in candidate_groups(max(t.joint + 1, *(
+        f.joint + 1 for f in t.factors)))}  # fmt: skip
+    return tuple(n for n in (name_of(t.joint, f) for f in forms) if n in valid)
+
+
+def _simpler_form(search: Search, before: SearchState, state: SearchState) -> SearchState:
+    """After a constructed term was named (`state`, from `before`): a simpler form of it
+    (`_simpler_forms`) in its place when its BIC is lower and its held-out gap no worse by
+    more than the floor (a step whose `replaces` holds the term); else `state`."""
+    from ..estimate.calibration import fit
+
+    effect = state.steps[-1].effect
+    if term(effect) is None or not term(effect).factors or effect not in state.named:
+        return state
+    forms = _simpler_forms(effect)
+    if not forms:
+        return state
+    search.say(f"is a simpler form of {effect} as good?")
+    n_obs = search.n_obs
+    space = tuple(dict.fromkeys((*state.space, *forms)))
+
+    def bic(res, named):
+        return res.chi2 + sum(free_count(res, e) for e in named) * np.log(n_obs)
+
+    bic_now = bic(state.current, state.named)
+    best = None
+    for form in forms:
+        named = tuple(form if e == effect else e for e in state.named)
+        r = fit(search.obs.rec, estimate=named, weights=search.obs.weights,
+                init=without(state.current, effect), space=space, robust_sigma=False)  # fmt: skip
+        if free_count(r, form) and bic(r, named) < (bic_now if best is None else best[2]):
+            best = (form, r, bic(r, named), named)
+    if best is None:
+        return state
+    form, r, b, named = best
+    h = search.obs.heldout.gap(named, r, space)
+    lr = float(before.current.chi2 - r.chi2)
+    score = significance(lr, free_count(r, form), n_obs, likelihood_ratio=lr,
+                         delta_bic_against_replaced=float(bic_now - b),
+                         heldout_gap_before_m=state.steps[-1].score["heldout_gap_before_m"],
+                         heldout_gap_after_m=h)  # fmt: skip
+    if not h <= state.heldout_gap + state.floor:
+        return dataclasses.replace(state, rejected=(*state.rejected, {"effect": form, **score}))
+    search.say(f"{form} replaces {effect}")
+    current = search.reported(r, named, space)
+    state = dataclasses.replace(state, named=named, current=current, space=space,
+                                robust=True, heldout_gap=h)  # fmt: skip
+    return _with_step(search, state, form, score, state.steps[-1].candidates, (effect,))

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..recording import Recording
-from ._localisation import basis, heldout_fraction, merged, moments
+from ._localisation import Moments, basis, heldout_fraction, merged, moments
 from ._residual_stats import aligned
 
 #: frames the localisation uses at most (evenly spaced): its time stays bounded on long
@@ -142,6 +142,61 @@ def localise(
     entry of the effects `calibration` estimated (`effect_directions`), the linearised
     refit of the model with the function added.
     """
+    um = unit_moments(
+        rec, calibration, residual, weights, var3, block, space=space, max_frames=max_frames
+    )
+    frames, use, per_frame, per_obs = um.frames, um.use, um.per_frame, um.per_obs
+    n_joints = per_frame.bw.shape[1] - 3
+    seen = np.flatnonzero(use.reshape(-1))
+    floor2 = floor**2
+    # a displacement in a fixed direction, or one joint's angle error
+    frame_groups = [(0, 1, 2), *((3 + j,) for j in range(n_joints))]
+    ranking = []
+    for name, values in variables.items():
+        v = aligned(rec, calibration, np.asarray(values)[frames]).astype(float)
+        of_frame = _frame_values(v, use)
+        if of_frame is not None:
+            b, mom, groups = basis(of_frame), per_frame, frame_groups
+        else:
+            b, mom, groups = basis(v.reshape(-1)[seen]), per_obs, None
+        if b is not None:
+            ranking.append((name, *heldout_fraction(mom, b, groups, floor2)))
+    ranking.sort(key=lambda x: -x[1] if np.isfinite(x[1]) else np.inf)
+    gap2 = per_frame.excess.sum() / max(per_frame.count.sum(), 1)
+    return Localisation(
+        tuple(ranking), float(np.sqrt(max(gap2, 0.0))), float(floor), int(frames.size)
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class UnitMoments:
+    """A fit's residual reduced to the normal-equation moments the localisation fits on
+    (`_localisation.Moments`): the recording `frames` used `(F,)`, which observations of
+    them count `use` `(F, M)`, their moments per frame (`per_frame`; channels: the three
+    camera axes, then each joint's angle, [m per m] and [m per rad]) and per observation
+    (`per_obs`, the camera axes; None when not asked for). The nuisance of both: camera←base,
+    flange←tool and the fit's estimated effects, to first order."""
+
+    frames: np.ndarray
+    use: np.ndarray
+    per_frame: Moments
+    per_obs: Moments | None
+
+
+def unit_moments(
+    rec: Recording,
+    calibration,
+    residual: np.ndarray,
+    weights: np.ndarray,
+    var3: np.ndarray,
+    block: np.ndarray,
+    *,
+    space: Sequence[str] = (),
+    max_frames: int = MAX_FRAMES,
+    per_observation: bool = True,
+) -> UnitMoments:
+    """The `UnitMoments` of `residual` of the fit `calibration` (arguments as `localise`),
+    on at most `max_frames` frames, evenly spaced."""
     n = rec.n_frames
     frames = np.arange(0, n, max(1, -(-n // max_frames)))
     r, w, v3 = residual[frames], weights[frames], var3[frames]
@@ -161,6 +216,8 @@ def localise(
             [nuisance_directions(positions[c], camera_from_tool[c]), effects[c]], -1
         )
         per_frame.append(moments(r[c], w[c], v3[c], channels, nuisance, blk[c], n_blocks))
+        if not per_observation:
+            continue
         seen = use[c].reshape(-1)
         per_obs.append(
             moments(
@@ -173,26 +230,7 @@ def localise(
                 n_blocks,
             )
         )
-    per_frame, per_obs = merged(per_frame), merged(per_obs)
-    seen = np.flatnonzero(use.reshape(-1))
-    floor2 = floor**2
-    # a displacement in a fixed direction, or one joint's angle error
-    frame_groups = [(0, 1, 2), *((3 + j,) for j in range(sens.shape[2]))]
-    ranking = []
-    for name, values in variables.items():
-        v = aligned(rec, calibration, np.asarray(values)[frames]).astype(float)
-        of_frame = _frame_values(v, use)
-        if of_frame is not None:
-            b, mom, groups = basis(of_frame), per_frame, frame_groups
-        else:
-            b, mom, groups = basis(v.reshape(-1)[seen]), per_obs, None
-        if b is not None:
-            ranking.append((name, *heldout_fraction(mom, b, groups, floor2)))
-    ranking.sort(key=lambda x: -x[1] if np.isfinite(x[1]) else np.inf)
-    gap2 = per_frame.excess.sum() / max(per_frame.count.sum(), 1)
-    return Localisation(
-        tuple(ranking), float(np.sqrt(max(gap2, 0.0))), float(floor), int(frames.size)
-    )
+    return UnitMoments(frames, use, merged(per_frame), merged(per_obs) if per_observation else None)
 
 
 def _frame_values(values: np.ndarray, use: np.ndarray) -> np.ndarray | None:

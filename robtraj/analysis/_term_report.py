@@ -68,8 +68,14 @@ def _where_it_acts(rec: Recording, res, effect: str, angles: np.ndarray) -> dict
     if t.kind == "joint":
         q, sign, torque = _term_inputs(rec, res.time_offset, res.motion_threshold)
         size = np.abs(np.asarray(_term_values(t.fn, c, q, sign, torque)))
-        qj = np.asarray(q)[:, t.joint]
-        where = {"variable_range": [float(qj.min()), float(qj.max())], "unit": "rad"}
+        # a constructed term: the range of its first factor's signal
+        f = t.factors[0] if t.factors else None
+        by_torque = f is not None and f.signal == "tau"
+        qj = np.asarray(torque if by_torque else q)[:, t.joint if f is None else f.joint]
+        where = {
+            "variable_range": [float(qj.min()), float(qj.max())],
+            "unit": "N·m" if by_torque else "rad",
+        }
     else:
         th = np.where(np.isfinite(angles), angles, 0.0)
         y = np.nan_to_num(np.asarray(rec.positions, float))

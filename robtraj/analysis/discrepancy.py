@@ -37,6 +37,7 @@ from ._discovery_steps import (
     ALPHA as ALPHA,
     INDISTINCT_BIC as INDISTINCT_BIC,
     MAX_REFITS as MAX_REFITS,
+    constructed_step,
     equivalence_step,
     maps_step,
     search_rounds,
@@ -196,6 +197,7 @@ def discover(
     max_steps: int = 4,
     progress=None,
     include: tuple[str, ...] = (),
+    construct: bool = True,
 ) -> DiscrepancyResult:
     """Run the discrepancy workflow on `rec` (needs a robot log and a tool).
 
@@ -221,7 +223,12 @@ def discover(
     angles, those joints' angle error maps (`robtraj.model.joint_maps`, a periodic error
     of many cycles per revolution) are offered and searched by the same rounds
     (`maps_step`); they come last so that a library effect or a dictionary term that
-    explains the structure is named as such, not as a map standing in for it.
+    explains the structure is named as such, not as a map standing in for it. When
+    structure is left after them (and `construct`), terms built from the recording's
+    signals — a joint's angle error as a function of one or two joint angles or gravity
+    torques, `robtraj.model._constructed` — are screened at once and the strongest
+    searched by the same rounds (`constructed_step`), at a significance divided by the
+    number screened.
     """
     from ..estimate.calibration import library_space
 
@@ -239,6 +246,9 @@ def discover(
     state = simpler_model_step(search, state)
     # structure left against joint angles: their angle error maps
     state = maps_step(search, state, max_steps)
+    # structure still left: terms built from the recording's signals
+    if construct:
+        state = constructed_step(search, state, max_steps)
     # two stories the recording supports equally: said, with the poses that tell them apart
     state = equivalence_step(search, state)
     return _result(search, state)

@@ -24,7 +24,11 @@ def register(sub) -> argparse.ArgumentParser:
             "the emission axis and the line of sight, a scale per camera axis) by a score "
             "test, refit with the best and name it when the likelihood-ratio test, BIC and "
             "held-out time blocks confirm it; a dictionary term replaces the library effects "
-            "that stood in for it; repeat; report structure that nothing explains and where "
+            "that stood in for it; repeat; when structure is left, the joint angle error maps, "
+            "then terms built from the recording's signals (a joint's angle error as a "
+            "product of functions of one or two joint angles or gravity torques: screened "
+            "at once, the strongest tested the same way at a significance divided by the "
+            "number screened); report structure that nothing explains and where "
             "it lives: the variables ranked by the fraction of the held-out gap that a smooth "
             "function of each alone removes. "
             "Exit status: 0 when the final calibration converged, 3 when "
@@ -42,6 +46,13 @@ def register(sub) -> argparse.ArgumentParser:
         "effects (the library's geometric and compliance effects, every joint's angle error "
         "map) by blocked cross-validation inside itself, and the other one validates them "
         "(docs/real_ur10.md)",
+    )
+    p.add_argument(
+        "--no-constructed",
+        action="store_true",
+        help="search the library, the dictionary and the joint angle error maps only: no "
+        "terms built from the recording's signals (a joint's angle error as a function of "
+        "one or two joint angles or gravity torques)",
     )
     p.add_argument("--json", metavar="OUT", help="write the result (DESIGN section 8)")
     p.add_argument(
@@ -77,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     rec = read_recording(args.recording)
     check_leds_seen(rec, args.recording)
     with progress_status("discrepancy") as say:
-        res = discover(rec, progress=say)
+        res = discover(rec, progress=say, construct=not args.no_constructed)
     doc = res.to_json()
     print(
         f"gap before: {doc['gap_before_m'] * 1e6:.1f} µm (noise σ {doc['noise_sigma_m'] * 1e6:.1f} µm per axis)"
@@ -99,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
             acts = s["term"]["acts"]
             lo, hi = acts["variable_range"]
             print(
-                f"  acts over {s['term']['variable']} from {lo:.2f} to {hi:.2f} rad, at least "
+                f"  acts over {s['term']['variable']} from {lo:.2f} to {hi:.2f} "
+                f"{acts['unit']}, at least "
                 f"half its peak in {100 * acts['share_above_half_peak']:.0f} % of the recording"
             )
         for e in s["equally_supported"]:

@@ -21,6 +21,7 @@ from ..model import (
     Effects,
     RobotModel,
     effect_component_names,
+    is_effect,
     known_effects,
     redundant_link_parameters,
 )
@@ -29,9 +30,9 @@ _TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
 
 
 def check_names(names) -> None:
-    """`UserError` for a name that is no effect of the library or the dictionary."""
-    known = known_effects()
-    bad = [e for e in names if e not in known]
+    """`UserError` for a name that is no effect of the library or the dictionary (a
+    constructed term's name is one: `is_effect` builds it)."""
+    bad = [e for e in names if not is_effect(e)]
     if bad:
         raise UserError(
             f"unknown effect(s) {', '.join(bad)} (known: the library "

@@ -6,6 +6,12 @@ the effect library.
 """
 
 from ._camera import CameraModel, emission_angle, in_volume, noise_sigma
+from ._constructed import (
+    Factor as ConstructedFactor,
+    candidate_groups as constructed_groups,
+    features as constructed_features,
+    name_of as constructed_name,
+)
 from ._dictionary import (
     HARMONICS,
     Term,
@@ -91,6 +97,10 @@ __all__ = [
     "amplitude_phase",
     "camera_from_base_at",
     "default_terms",
+    "ConstructedFactor",
+    "constructed_features",
+    "constructed_groups",
+    "constructed_name",
     "describe",
     "dh_corrections",
     "dh_link_matrix",

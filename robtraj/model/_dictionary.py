@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
-from . import _joint_map
+from . import _constructed, _joint_map
 
 #: joints the default dictionary has terms for (a robot uses those it has)
 MAX_JOINTS = 9
@@ -73,6 +73,8 @@ class Term:
       posterior one.
     - `knots`: the knot count of a joint angle error map (`_joint_map`), 0 otherwise.
     - `searched`: among the discovery search's default candidates (`dictionary`).
+    - `factors`: a constructed term's factors (`robtraj.model._constructed.Factor`),
+      empty for any other term.
     """
 
     name: str
@@ -89,6 +91,7 @@ class Term:
     precision: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
     knots: int = 0
     searched: bool = True
+    factors: tuple = ()
 
     @property
     def size(self) -> int:
@@ -304,8 +307,39 @@ def unregister_effect(name: str) -> None:
 
 
 def term(name: str) -> Term | None:
-    """The dictionary term called `name` (None for a library effect or an unknown name)."""
-    return _REGISTRY.get(name)
+    """The dictionary term called `name` (None for a library effect or an unknown name);
+    a constructed term (`robtraj.model._constructed`) is built from its name the first
+    time it is asked for."""
+    found = _REGISTRY.get(name)
+    if found is None and name not in _RESERVED:
+        found = _constructed_term(name)
+        if found is not None:
+            _REGISTRY[name] = found
+    return found
+
+
+def _constructed_term(name: str) -> Term | None:
+    """The constructed term called `name`; None when `name` is not one."""
+    parsed = _constructed.parse(name)
+    if parsed is None or parsed[0] >= MAX_JOINTS:
+        return None
+    joint, factors = parsed
+    words = _constructed.function_words(factors)
+    return Term(
+        name=name,
+        kind="joint",
+        components=_constructed.components(factors),
+        unit=_constructed.unit(factors),
+        fn=lambda q, s, tau: _constructed.features(factors, q, tau),
+        variable=", ".join(
+            dict.fromkeys(f"{'q' if f.signal == 'q' else 'τ'}{f.joint + 1}" for f in factors)
+        ),
+        function=" + ".join(f"{c}·{w}" for c, w in zip(_constructed.components(factors), words)),
+        frame_variable=f"joint {factors[0].joint + 1}",
+        joint=joint,
+        searched=False,
+        factors=factors,
+    )
 
 
 def dictionary(n_joints: int) -> tuple[str, ...]:
@@ -327,7 +361,7 @@ def term_names() -> tuple[str, ...]:
 
 
 def _joint_terms(names: Sequence[str]) -> list[Term]:
-    return [_REGISTRY[n] for n in names if n in _REGISTRY and _REGISTRY[n].kind == "joint"]
+    return [t for t in map(term, names) if t is not None and t.kind == "joint"]
 
 
 def joint_term_features(
@@ -362,14 +396,14 @@ def led_term_offset(terms: dict, y, n, theta):
     """Sum of the LED terms in `terms` for LED positions `y` `(..., 3)` [m]."""
     out = jnp.zeros_like(y)
     for name, c in terms.items():
-        t = _REGISTRY[name]
+        t = term(name)
         if t.kind == "led":
             out = out + jnp.einsum("...ik,k->...i", t.fn(y, n, theta), c)
     return out
 
 
 def has_led_terms(names) -> bool:
-    return any(_REGISTRY[n].kind == "led" for n in names if n in _REGISTRY)
+    return any(t is not None and t.kind == "led" for t in map(term, names))
 
 
 def amplitude_phase(values: np.ndarray, cov: np.ndarray) -> tuple[float, float, float, float]:
@@ -393,6 +427,28 @@ def _fmt(value: float, sigma: float, unit: str) -> str:
     return f"{value:.3g} ± {sigma:.2g} {unit}"
 
 
+def _constructed_words(t: Term, values: np.ndarray, sigma: np.ndarray) -> str:
+    """A constructed term in words: its products of basis functions, those more than 2σ
+    from zero, the largest first (``joint 2 angle error −0.6 ± 0.004 mrad·cos(3·q3)·sin(q4)``;
+    per unit of a signal for a linear factor: ``0.31 ± 0.01 mrad per rad of q2``)."""
+    words = _constructed.function_words(t.factors)
+    per = [f.unit for f in t.factors if f.unit]
+    order = np.argsort(-np.abs(values) / np.where(sigma > 0, sigma, np.inf))
+    parts = []
+    for k in order:
+        if abs(values[k]) <= 2 * sigma[k] and parts:
+            continue
+        size = _fmt(values[k], sigma[k], "rad")
+        if per:
+            size += f" per {'·'.join(per)} of {words[k]}"
+        else:
+            size += f"·{words[k]}"
+        parts.append(size)
+    rest = len(values) - len(parts)
+    tail = f" ({rest} more within 2σ of zero)" if rest else ""
+    return f"joint {t.joint + 1} angle error " + " + ".join(parts) + tail
+
+
 def describe(t: Term, values: np.ndarray, cov: np.ndarray) -> str:
     """The term with its fitted coefficients in words, e.g.
     ``joint 1 angle error 0.25 ± 0.01 mrad · sin(2·q1 + 1.00 rad)``."""
@@ -401,6 +457,8 @@ def describe(t: Term, values: np.ndarray, cov: np.ndarray) -> str:
     sig = np.sqrt(np.clip(np.diag(cov), 0, None))
     if t.knots:
         return _joint_map.words(t.joint + 1, values, None)
+    if t.factors:
+        return _constructed_words(t, values, sig)
     if t.harmonic:
         a, sa, phi, sp = amplitude_phase(values, cov)
         return (
