@@ -21,6 +21,7 @@ import dataclasses
 
 import numpy as np
 
+from ..estimate import covariance
 from ..model import (
     constructed_features as features,
     constructed_groups as candidate_groups,
@@ -32,8 +33,6 @@ from ._term_report import _term_inputs
 
 #: constructed terms the screen offers to the refits per round, the strongest first
 OFFERED = 3
-#: relative eigenvalue below which a direction of a screened normal matrix is left out
-_RCOND = 1e-10
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,12 +80,14 @@ def screen(search, state, exclude=frozenset()) -> Screened:
 
 def _statistics(mom, groups, q: np.ndarray, tau: np.ndarray) -> list[tuple[float, int]]:
     """`(statistic, rank)` of each group ``(joint, factors)`` on the per-frame moments
-    `mom` (channels: 3 camera axes, then the joints), q and τ `(U, joints)` of its units."""
+    `mom` (channels: 3 camera axes, then the joints), q and τ `(U, joints)` of its units;
+    pseudo-inverses as the engine takes them (`robtraj.estimate.covariance`: column-scaled,
+    null directions left out)."""
     # the nuisance with every joint's constant offset: its own products and residual
     nw_joint = mom.nw[:, :, 3:].sum(0)  # (g, J)
     hee = np.block([[mom.nnw.sum(0), nw_joint], [nw_joint.T, mom.gw[:, 3:, 3:].sum(0)]])
     re = np.concatenate([mom.nrw.sum(0), mom.bw[:, 3:].sum(0)])
-    hee_inv = _pinv(hee)
+    hee_inv, _ = covariance(hee, np.ones(len(hee), bool))
     cache: dict = {}
     out = []
     for j, factors in groups:
@@ -100,17 +101,6 @@ def _statistics(mom, groups, q: np.ndarray, tau: np.ndarray) -> list[tuple[float
         t = hfe @ hee_inv
         s = phi.T @ mom.bw[:, c] - t @ re
         schur = phi.T @ (h[:, None] * phi) - t @ hfe.T
-        inv, rank = _pinv(schur, rank=True)
+        inv, rank = covariance(schur, np.ones(len(schur), bool))
         out.append((max(float(s @ inv @ s), 0.0), rank))
     return out
-
-
-def _pinv(h: np.ndarray, rank: bool = False):
-    """The pseudo-inverse of the symmetric `h` in the column-scaled space (directions of
-    relative eigenvalue below `_RCOND` left out), with its rank if asked."""
-    d = np.sqrt(np.clip(np.diag(h), 0.0, None))
-    d = np.where(d > 0, d, 1.0)
-    lam, vec = np.linalg.eigh(h / np.outer(d, d))
-    keep = lam > _RCOND * max(lam.max(initial=0.0), 0.0)
-    inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T / np.outer(d, d)
-    return (inv, int(keep.sum())) if rank else inv
