@@ -15,6 +15,11 @@ from ._named_model import (
     pose_calibration as pose_calibration,
 )
 from ._quat import error_components as error_components, rotation_angle as rotation_angle
+from ._search_frames import (
+    SEARCH_FRAMES as SEARCH_FRAMES,
+    refit_on_all_frames as refit_on_all_frames,
+    search_recording as search_recording,
+)
 from .deviation import (
     DeviationResult as DeviationResult,
     DeviationSummary as DeviationSummary,

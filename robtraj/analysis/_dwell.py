@@ -30,20 +30,25 @@ def cluster_targets(
     return ids
 
 
-def smoothed_speed(time: np.ndarray, position: np.ndarray, window: float) -> np.ndarray:
-    """TCP speed [m/s] by central differences over ±`window`/2 seconds (NaN frames skipped)."""
-    ok = np.all(np.isfinite(position), axis=1)
-    t, p = time[ok], position[ok]
+def smoothed_speed(
+    time: np.ndarray, position: np.ndarray, window: float, block: int = 1 << 16
+) -> np.ndarray:
+    """TCP speed [m/s] by central differences over ±`window`/2 seconds (NaN frames
+    skipped), `block` seen frames at a time."""
+    rows = np.flatnonzero(np.all(np.isfinite(position), axis=1))
     speed = np.full(time.shape[0], np.nan)
-    if t.size < 2:
+    if rows.size < 2:
         return speed
-    lo = np.searchsorted(t, t - window / 2, side="left")
-    hi = np.clip(np.searchsorted(t, t + window / 2, side="right") - 1, 0, t.size - 1)
-    lo = np.minimum(lo, hi - 1).clip(0)
-    hi = np.maximum(hi, lo + 1).clip(max=t.size - 1)
-    dt = t[hi] - t[lo]
-    v = np.linalg.norm(p[hi] - p[lo], axis=1) / np.where(dt > 0, dt, np.inf)
-    speed[ok] = v
+    t, last = time[rows], rows.size - 1
+    for a in range(0, rows.size, block):
+        tb = t[a : a + block]
+        lo = np.searchsorted(t, tb - window / 2, side="left")
+        hi = np.clip(np.searchsorted(t, tb + window / 2, side="right") - 1, 0, last)
+        lo = np.minimum(lo, hi - 1).clip(0)
+        hi = np.maximum(hi, lo + 1).clip(max=last)
+        dt = t[hi] - t[lo]
+        step = position[rows[hi]] - position[rows[lo]]
+        speed[rows[a : a + block]] = np.linalg.norm(step, axis=1) / np.where(dt > 0, dt, np.inf)
     return speed
 
 

@@ -204,8 +204,8 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     ref, dev = deviation_of(iso_rec, bf)
     (out / "deviation.json").write_text(json.dumps(dev.summary().to_json(), indent=1))
     v = bf.valid
-    write_tum(out / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
-    write_tum(out / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
+    write_tum(out / "measured.tum", bf.time, bf.position, bf.quaternion_wxyz, v)
+    write_tum(out / "commanded.tum", bf.time, dev.foot, dev.foot_quaternion_wxyz, v)
     step("iso9283.json and deviation.json:")
     print_table(iso)
 

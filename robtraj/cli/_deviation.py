@@ -66,8 +66,8 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.tum)
         v = bf.valid
         with _output.new_folder(out) as tmp:
-            write_tum(tmp / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
-            write_tum(tmp / "commanded.tum", bf.time[v], dev.foot[v], dev.foot_quaternion_wxyz[v])
+            write_tum(tmp / "measured.tum", bf.time, bf.position, bf.quaternion_wxyz, v)
+            write_tum(tmp / "commanded.tum", bf.time, dev.foot, dev.foot_quaternion_wxyz, v)
         print(f"TUM trajectories in {out}/ (measured.tum, commanded.tum)")
     _analysis_inputs.write_json(args.json, doc, args.warnings)
     return 0

@@ -69,50 +69,63 @@ def _inputs(rec, args: argparse.Namespace, notes: list[str]):
     return calib, bf
 
 
+def _analyses(rec, bf, notes: list[str]):
+    """(reference path, deviation, ISO 9283 result), each None where it cannot be had
+    (the reason to `notes`). ISO 9283 first: its passes' temporaries and the deviation's
+    per-frame result are then never in memory together."""
+    from ._deviation import deviation_of
+    from ._iso9283 import iso_of, missing_characteristics
+
+    if rec.program is None or bf is None:
+        return None, None, None
+    iso_notes: list[str] = []
+    try:
+        iso = iso_of(rec, bf)
+        iso_notes += [f"ISO 9283: {m}" for m in missing_characteristics(iso)]
+    except UserError as e:
+        iso = None
+        iso_notes.append(f"ISO 9283 left out: {e}")
+    try:
+        ref, dev = deviation_of(rec, bf)
+        dev.summary()  # raises when no frame lies on a linear move
+    except UserError as e:
+        ref = dev = None
+        notes.append(f"path deviation left out: {e}")
+    notes += iso_notes
+    return ref, dev, iso
+
+
 def run(args: argparse.Namespace) -> int:
     from .._recording_reader import open_recording
     from ..analysis import write_tum
-    from ..report import recording_report
-    from ._deviation import deviation_of
-    from ._iso9283 import iso_of, missing_characteristics
+    from ..report import recording_parts, recording_report
 
     out = Path(args.out)
     _output.check([args.json], [out], force=args.force)
     notes: list[str] = []
     # the LED positions stay on disk: every pass over them reads them chunk by chunk
-    with open_recording(args.recording, truth=False) as rec:
+    with open_recording(args.recording, truth=False) as rec, _output.new_folder(out) as tmp:
         calib, bf = _inputs(rec, args, notes)
-        ref = dev = iso = None
-        if rec.program is not None and bf is not None:
-            try:
-                ref, dev = deviation_of(rec, bf)
-                dev.summary()  # raises when no frame lies on a linear move
-            except UserError as e:
-                ref = dev = None
-                notes.append(f"path deviation left out: {e}")
-            try:
-                iso = iso_of(rec, bf)
-                notes += [f"ISO 9283: {m}" for m in missing_characteristics(iso)]
-            except UserError as e:
-                notes.append(f"ISO 9283 left out: {e}")
-        with _output.new_folder(out) as tmp:
-            path = recording_report(
-                tmp,
-                rec,
-                calib,
-                bf,
-                deviation=dev,
-                reference=ref,
-                iso=iso,
-                name=Path(args.recording).name,
-                notes=notes,
-            )
-            if bf is not None:
-                v = bf.valid
-                write_tum(tmp / "measured.tum", bf.time[v], bf.position[v], bf.quaternion_wxyz[v])
-                if dev is not None:
-                    foot, foot_q = dev.foot[v], dev.foot_quaternion_wxyz[v]
-                    write_tum(tmp / "commanded.tum", bf.time[v], foot, foot_q)
+        own = recording_parts(tmp, rec, bf)  # before the analyses' per-frame results
+        ref, dev, iso = _analyses(rec, bf, notes)
+        path = recording_report(
+            tmp,
+            rec,
+            calib,
+            bf,
+            deviation=dev,
+            reference=ref,
+            iso=iso,
+            name=Path(args.recording).name,
+            notes=notes,
+            own=own,
+        )
+        if bf is not None:
+            v = bf.valid
+            write_tum(tmp / "measured.tum", bf.time, bf.position, bf.quaternion_wxyz, v)
+            if dev is not None:
+                foot, foot_q = dev.foot, dev.foot_quaternion_wxyz
+                write_tum(tmp / "commanded.tum", bf.time, foot, foot_q, v)
     path = out / path.relative_to(tmp)
     _analysis_inputs.write_json(
         args.json,

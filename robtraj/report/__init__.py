@@ -26,4 +26,8 @@ from ._html import (
     iso_tables as iso_tables,
     write_report as write_report,
 )
-from ._recording_report import recording_report as recording_report
+from ._recording_report import (
+    RecordingParts as RecordingParts,
+    recording_parts as recording_parts,
+    recording_report as recording_report,
+)

@@ -27,18 +27,22 @@ def envelope(values: np.ndarray, runs: int = FIGURE_RUNS) -> np.ndarray:
     of them up to ``2 * runs`` frames; else, in each of `runs` equal runs of consecutive
     frames, the first frame with the run's smallest and the first with its largest finite
     value (every extreme is kept, so spikes show; a run without one is left out)."""
-    v = np.asarray(values, float)
-    n = v.shape[0]
+    n = np.shape(values)[0]
     if n <= 2 * runs:
         return np.arange(n)
-    starts = np.linspace(0, n, runs + 1).astype(np.int64)[:-1]
-    run = np.repeat(np.arange(runs), np.diff(np.append(starts, n)))
-    finite = np.isfinite(v)
+    edges = np.linspace(0, n, runs + 1).astype(np.int64)
     keep = []
-    for fill, reduce in ((np.inf, np.minimum), (-np.inf, np.maximum)):
-        extreme = reduce.reduceat(np.where(finite, v, fill), starts)
-        at = np.flatnonzero(finite & (v == extreme[run]))
-        keep.append(at[np.unique(run[at], return_index=True)[1]])
+    # a group of runs at a time: the temporaries stay small on long recordings
+    group = max(1, IMAGE_CHUNK // int(np.diff(edges).max()))
+    for g in range(0, runs, group):
+        e = edges[g : g + group + 1]
+        v = np.asarray(values[e[0] : e[-1]], float)
+        run = np.repeat(np.arange(e.size - 1), np.diff(e))
+        finite = np.isfinite(v)
+        for fill, reduce in ((np.inf, np.minimum), (-np.inf, np.maximum)):
+            extreme = reduce.reduceat(np.where(finite, v, fill), e[:-1] - e[0])
+            at = np.flatnonzero(finite & (v == extreme[run]))
+            keep.append(e[0] + at[np.unique(run[at], return_index=True)[1]])
     return np.unique(np.concatenate(keep))
 
 
@@ -65,11 +69,11 @@ def path_3d_figure(
     fig.get_layout_engine().set(wspace=0.12)
     ax = fig.add_subplot(1, 2, 1, projection="3d", computed_zorder=False)
     top = fig.add_subplot(1, 2, 2)
-    ok = np.all(np.isfinite(position), axis=1) & np.isfinite(distance)
-    p, d = position[ok] * 1e3, distance[ok] * 1e3
+    rows = np.flatnonzero(np.all(np.isfinite(position), axis=1) & np.isfinite(distance))
+    d = distance[rows] * 1e3
     vmax, n_above = robust_limit(d)
     drawn = envelope(d)
-    p, d = p[drawn], d[drawn]
+    p, d = position[rows[drawn]] * 1e3, d[drawn]
     kw = dict(c=d, s=2, cmap="viridis", vmin=0.0, vmax=vmax, zorder=1, label="measured")
     sc = ax.scatter(*p.T, **kw)
     top.scatter(p[:, 0], p[:, 1], **kw)
@@ -105,16 +109,16 @@ def deviation_figure(
     """Distance [m → mm] and orientation error [rad → °] against path progress [m → mm];
     frames off the path (joint moves, `on_path` False) in grey."""
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(10, 6), sharex=True, constrained_layout=True)
-    s = progress * 1e3
-    use = np.ones_like(s, bool) if on_path is None else np.asarray(on_path, bool)
-    for ax, v, label in [
-        (a0, distance * 1e3, "distance [mm]"),
-        (a1, np.degrees(orientation_error), "orientation error [°]"),
+    use = np.ones(np.shape(progress), bool) if on_path is None else np.asarray(on_path, bool)
+    for ax, v, unit, label in [
+        (a0, distance, 1e3, "distance [mm]"),
+        (a1, orientation_error, np.degrees(1.0), "orientation error [°]"),
     ]:
         for part, style in ((~use, dict(color="0.7", label="joint moves")),
                             (use, dict(color="C0", label="path"))):  # fmt: skip
-            i = envelope(v[part])
-            ax.plot(s[part][i], v[part][i], ".", ms=1, **style)
+            rows = np.flatnonzero(part)
+            i = rows[envelope(v[rows])]
+            ax.plot(progress[i] * 1e3, v[i] * unit, ".", ms=1, **style)
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
     a0.set_title(title)
@@ -182,7 +186,8 @@ def visibility_figure(
         if variance.shape[1] == m:
             variance = variance[:, pick]
         with np.errstate(invalid="ignore"):
-            std = np.sqrt(variance) * 1e6
+            std = np.sqrt(variance)
+        std *= 1e6
         top, n_clipped = robust_limit(std)
         for j, k in enumerate(pick):
             i = envelope(std[:, j])
@@ -219,7 +224,14 @@ def _binned(visible: np.ndarray) -> np.ndarray:
     if n <= IMAGE_COLUMNS:
         return np.asarray(visible, float)
     edges = np.linspace(0, n, IMAGE_COLUMNS + 1).astype(np.int64)
-    counts = np.add.reduceat(visible, edges[:-1], axis=0, dtype=np.int64)
+    counts = np.empty((IMAGE_COLUMNS, visible.shape[1]), np.int64)
+    # bins a group at a time: reduceat casts its whole input to the count's type
+    group = max(1, IMAGE_CHUNK // int(np.diff(edges).max()))
+    for i in range(0, IMAGE_COLUMNS, group):
+        e = edges[i : i + group + 1]
+        counts[i : i + e.size - 1] = np.add.reduceat(
+            visible[e[0] : e[-1]], e[:-1] - e[0], axis=0, dtype=np.int64
+        )
     return counts / np.diff(edges)[:, None]
 
 
@@ -228,14 +240,15 @@ def robust_limit(values: np.ndarray, k: float = 10.0) -> tuple[float, int]:
     standard deviation for Gaussian data), so that spikes do not set the scale; and how
     many values lie above it. Falls back to the largest value when the MAD is zero."""
     v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
+    d = v[np.isfinite(v)]  # the one copy: medians partition it in place
+    if d.size == 0:
         return float("nan"), 0
-    med = float(np.median(v))
-    top = med + k * 1.4826 * float(np.median(np.abs(v - med)))
+    med = float(np.median(d, overwrite_input=True))
+    d -= med
+    top = med + k * 1.4826 * float(np.median(np.abs(d), overwrite_input=True))
     if top <= 0 or top <= med:
-        top = float(v.max()) or 1.0
-    return top, int(np.sum(v > top))
+        return float(np.max(d) + med) or 1.0, 0
+    return top, int(np.count_nonzero(d > top - med))
 
 
 def static_pose_figure(

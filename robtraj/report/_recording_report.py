@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -32,6 +33,7 @@ def recording_report(
     extra_sections: tuple[Section, ...] = (),
     name: str = "recording",
     notes: Sequence[str] = (),
+    own: RecordingParts | None = None,
 ) -> Path:
     """Write `out_dir/report.html` with its PNGs.
 
@@ -41,11 +43,14 @@ def recording_report(
     the recording has a tool) and the calibration section is left out. `deviation` (a
     `DeviationResult`) with `reference` (its `ReferencePath`) and `iso` (an
     `Iso9283Result`) when they could be computed; `notes` (why something was left out)
-    go to the summary's warnings.
+    go to the summary's warnings. `own`: the sections of the recording and its poses
+    alone, from `recording_parts` (of the same `rec` and `base_poses`), when the caller
+    computed them already.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    poses = tool_poses(rec, base_poses)
+    own = recording_parts(out, rec, base_poses) if own is None else own
+    poses = own.poses
     parts = [
         _recording_part(rec, name, poses),
         calibration_part(calibration),
@@ -53,10 +58,10 @@ def recording_report(
         iso_part(iso),
         compensation_part(out, rec, calibration, iso),
         deviation_part(out, deviation, reference, poses.position),
-        speed_part(out, poses),
-        led_part(out, rec, poses),
-        noise_part(out, rec),
-        pose_quality_part(out, poses),
+        own.speed,
+        own.visibility,
+        own.noise,
+        own.pose_quality,
     ]
     facts = [f for p in parts for f in p.facts]
     warnings = [*notes, *(w for p in parts for w in p.warnings)]
@@ -67,6 +72,36 @@ def recording_report(
         date=str(rec.attrs.get("created", ""))[:10] or None,
         summary=Summary(facts, warnings),
         title="Robot performance test report (ISO 9283)",
+    )
+
+
+class RecordingParts(NamedTuple):
+    """The report's sections that depend on the recording and its tool poses alone: the
+    tool poses shown (`ToolPoses`), the TCP speed, the LEDs' visibility and
+    moving-window variance, the noise model and the pose fit's quality."""
+
+    poses: ToolPoses
+    speed: ReportPart
+    visibility: ReportPart
+    noise: ReportPart
+    pose_quality: ReportPart
+
+
+def recording_parts(out_dir: str | os.PathLike, rec, base_poses=None) -> RecordingParts:
+    """The `RecordingParts` of `rec` (figures into `out_dir`; `base_poses` as in
+    `recording_report`). They pass over the LED positions chunk by chunk and over the
+    per-frame poses, holding per-frame arrays while they do: a command that also holds
+    per-frame results of its own (path deviation, ISO 9283) computes these first, so the
+    two are never in memory together."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    poses = tool_poses(rec, base_poses)
+    return RecordingParts(
+        poses,
+        speed_part(out, poses),
+        led_part(out, rec, poses),
+        noise_part(out, rec),
+        pose_quality_part(out, poses),
     )
 
 

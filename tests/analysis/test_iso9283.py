@@ -418,3 +418,26 @@ def test_pose_intervals_of_lengths_stay_at_or_above_zero():
         _, ci = pose_statistics(x, q, cp, cq, np.arange(4) % 2, 2, rng, 200)
         for k in ("AP", "RP", "RPa", "RPb", "RPc", "AP_angle", "RP_angle", "vAP", "dAP", "dRP"):
             assert ci[k][0] >= 0.0, (k, ci[k])
+
+
+def test_smoothed_speed_by_blocks_is_the_central_difference_over_the_window():
+    """Block by block (several blocks, unseen frames skipped) against the central
+    difference over ±window/2 of the seen frames written out directly."""
+    from robtraj.analysis._dwell import smoothed_speed
+
+    rng = np.random.default_rng(4)
+    n, window = 5003, 0.05
+    time = np.cumsum(rng.uniform(0.5e-3, 1.5e-3, n))
+    position = np.cumsum(rng.normal(0, 1e-5, (n, 3)), 0)
+    position[rng.random(n) < 0.1] = np.nan
+    ok = np.all(np.isfinite(position), axis=1)
+    t, p = time[ok], position[ok]
+    direct = np.full(n, np.nan)
+    for k in range(t.size):
+        lo = int(np.searchsorted(t, t[k] - window / 2, side="left"))
+        hi = min(max(int(np.searchsorted(t, t[k] + window / 2, side="right")) - 1, 0), t.size - 1)
+        lo = max(min(lo, hi - 1), 0)
+        hi = min(max(hi, lo + 1), t.size - 1)
+        direct[np.flatnonzero(ok)[k]] = np.linalg.norm(p[hi] - p[lo]) / (t[hi] - t[lo])
+    got = smoothed_speed(time, position, window, block=700)
+    np.testing.assert_allclose(got, direct, rtol=1e-14, atol=0)  # the norm's rounding

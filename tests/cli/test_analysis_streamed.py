@@ -111,7 +111,7 @@ def test_led_sections_read_by_frame_ranges_equal_the_whole_recording(recorded):
 
 def test_long_visibility_is_shown_as_the_fraction_seen_per_time_bin():
     rng = np.random.default_rng(0)
-    n = 3 * IMAGE_COLUMNS + 7
+    n = 40 * IMAGE_COLUMNS + 7  # bins of 40 frames: counted in two groups of bins
     visible = rng.random((n, 5)) < 0.7
     binned = _binned(visible)
     assert binned.shape == (IMAGE_COLUMNS, 5)
@@ -122,13 +122,14 @@ def test_long_visibility_is_shown_as_the_fraction_seen_per_time_bin():
     np.testing.assert_array_equal(_binned(short), short.astype(float))
 
 
-def test_figure_envelope_keeps_every_runs_extremes():
+@pytest.mark.parametrize("runs, per_run", [(50, 7), (40, 3001)])
+def test_figure_envelope_keeps_every_runs_extremes(runs, per_run):
     """Long per-frame curves are drawn by each run's extremes: compared with a direct
     per-run min/max (NaN ignored, ties: the first frame), every extreme is kept and nothing
-    else; short series are drawn whole."""
+    else; short series are drawn whole. Runs longer than `IMAGE_CHUNK` / 40 frames are
+    taken in several groups."""
     rng = np.random.default_rng(3)
-    runs = 50
-    n = 7 * runs + 13
+    n = per_run * runs + 13
     v = np.round(rng.normal(size=n), 1)  # ties within runs
     v[rng.random(n) < 0.1] = np.nan
     v[40:60] = np.nan  # a run without a finite value

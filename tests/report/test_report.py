@@ -201,3 +201,10 @@ def test_static_pose_errors_against_a_direct_composition():
     assert np.isnan(e[-1]) and np.isnan(a[-1])
     prog.motion[2] = "linear"  # a path program is not a static pose series
     assert static_pose_errors(rec, calib, bf) is None
+
+
+def test_robust_limit_falls_back_to_the_largest_value_without_spread():
+    v = np.array([2.0, 2.0, 2.0, 2.0, 3.5, np.nan])  # MAD 0: the limit is the largest value
+    assert robust_limit(v) == (3.5, 0)
+    assert robust_limit(np.zeros(4)) == (1.0, 0)
+    assert np.isnan(robust_limit(np.full(3, np.nan))[0])
