@@ -1,6 +1,7 @@
 """Close the loop on the simulator, through the CLI: a robot with hidden compliance,
-link length and joint offset errors is calibrated and its model named (`discrepancy
---calibration-out`); `compensate` corrects its ISO cube program; the same robot runs the
+link length and joint offset errors is calibrated with those effects (`calibrate
+--estimate`; that `discrepancy --calibration-out` names them and writes the same kind of
+CALIB.json is `tests/analysis/test_named_model.py`'s); `compensate` corrects its ISO cube program; the same robot runs the
 corrected program (`simulate --commanded`) and `iso9283` shows what is left. With a
 controller that attains its targets exactly (`--ideal-controller`) that is the
 calibration's own error: AP ≤ 0.5·RP + 20 µm at every pose. With the cube's injected
@@ -55,7 +56,8 @@ def named(tmp_path_factory):
     cal, calib = tmp / "cal.h5", tmp / "calib.json"
     args = ["--scenario", "calibration", "--seed", 1, "--duration", 40, "--rate", 100]
     assert _cli("simulate", cal, *args, *HIDDEN, "--no-truth") == 0
-    assert _cli("discrepancy", cal, "--calibration-out", calib, "--json", tmp / "d.json") == 0
+    effects = "joint_compliance,link_length,joint_offset"
+    assert _cli("calibrate", cal, "--estimate", effects, "-o", calib) == 0
     return tmp
 
 
