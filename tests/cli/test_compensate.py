@@ -1,9 +1,9 @@
 """Close the loop on the simulator, through the CLI: a robot with hidden compliance,
 link length and joint offset errors is calibrated with those effects (`calibrate
 --estimate`; that `discrepancy --calibration-out` names them and writes the same kind of
-CALIB.json is `tests/analysis/test_named_model.py`'s); `compensate` corrects its ISO cube program; the same robot runs the
-corrected program (`simulate --commanded`) and `iso9283` shows what is left. With a
-controller that attains its targets exactly (`--ideal-controller`) that is the
+CALIB.json is `tests/analysis/test_named_model.py`'s); `compensate` corrects its ISO
+cube program; the same robot runs the corrected program (`simulate --commanded`) and
+`iso9283` shows what is left. With a controller that attains its targets exactly (`--ideal-controller`) that is the
 calibration's own error: AP ≤ 0.5·RP + 20 µm at every pose. With the cube's injected
 controller errors it is exactly those approach and drift errors, which no model of the
 robot describes. A target beyond the recorded robot's joint limits is refused by name."""
@@ -51,7 +51,7 @@ def _iso(tmp, name, *extra):
 
 
 @pytest.fixture(scope="module")
-def named(tmp_path_factory):
+def calibrated(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("compensate")
     cal, calib = tmp / "cal.h5", tmp / "calib.json"
     args = ["--scenario", "calibration", "--seed", 1, "--duration", 40, "--rate", 100]
@@ -62,8 +62,8 @@ def named(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def loop(named):
-    tmp = named
+def loop(calibrated):
+    tmp = calibrated
     before, rec = _iso(tmp, "iso")
     corrected = tmp / "corrected.csv"
     assert _cli("compensate", rec, "--calibration", tmp / "calib.json", "-o", corrected) == 0
@@ -71,10 +71,10 @@ def loop(named):
     return tmp, before, after
 
 
-def test_compensation_brings_the_accuracy_to_the_repeatability(named):
+def test_compensation_brings_the_accuracy_to_the_repeatability(calibrated):
     """A controller that attains what it is sent: after compensation AP ≤ 0.5·RP + 20 µm at
     every pose (from several tenths of a millimetre), RP unchanged."""
-    tmp = named
+    tmp = calibrated
     before, rec = _iso(tmp, "ideal", "--ideal-controller")
     corrected = tmp / "ideal_corrected.csv"
     assert _cli("compensate", rec, "--calibration", tmp / "calib.json", "-o", corrected) == 0
