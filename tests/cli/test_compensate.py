@@ -3,10 +3,10 @@ link length and joint offset errors is calibrated with those effects (`calibrate
 --estimate`; that `discrepancy --calibration-out` names them and writes the same kind of
 CALIB.json is `tests/analysis/test_named_model.py`'s); `compensate` corrects its ISO
 cube program; the same robot runs the corrected program (`simulate --commanded`) and
-`iso9283` shows what is left. With a controller that attains its targets exactly (`--ideal-controller`) that is the
-calibration's own error: AP ≤ 0.5·RP + 20 µm at every pose. With the cube's injected
-controller errors it is exactly those approach and drift errors, which no model of the
-robot describes. A target beyond the recorded robot's joint limits is refused by name."""
+`iso9283` shows what is left. With a controller that attains its targets exactly
+(`--ideal-controller`) that is the calibration's own error: AP ≤ 0.5·RP + 20 µm at every
+pose. With the cube's injected controller errors it is exactly those approach and drift
+errors, which no model of the robot describes. A target beyond the recorded robot's joint limits is refused by name."""
 
 import dataclasses
 import json
