@@ -6,7 +6,8 @@ cube program; the same robot runs the corrected program (`simulate --commanded`)
 `iso9283` shows what is left. With a controller that attains its targets exactly
 (`--ideal-controller`) that is the calibration's own error: AP ≤ 0.5·RP + 20 µm at every
 pose. With the cube's injected controller errors it is exactly those approach and drift
-errors, which no model of the robot describes. A target beyond the recorded robot's joint limits is refused by name."""
+errors, which no model of the robot describes. A target beyond the recorded robot's
+joint limits is refused by name."""
 
 import dataclasses
 import json
