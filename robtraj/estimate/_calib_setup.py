@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import UserError
+from .._mappings import make_room
 from ..model import Effects
 from ..recording import Pose, Recording
 from . import _calib_problem as cp
@@ -108,6 +109,8 @@ def setup(
     effects0 = start_effects(obs.data, free, init)
     names, q = theta_names(effects0, free, obs.data.n_leds)
     clustered = clustered and robust_affordable(q, say)
+    if cleared := make_room():
+        say(cleared)
     # the problem's structure and its kernels, on the compiling thread meanwhile
     ahead = CompileAhead()
     structure = ahead.run(
