@@ -79,7 +79,7 @@ print(most, limit)
 def test_a_process_that_compiles_past_the_limit_survives_with_make_room():
     """Compiling kernels that take 1.2 times the system's mapping limit: the process
     dies inside XLA's compiler (SIGSEGV) without `make_room`, and survives with it called
-    every 100 kernels (about 8 minutes for both on the 2-core machine)."""
+    every 100 kernels (20 minutes for both on the 2-core machine beside another job)."""
     code = textwrap.dedent(_LOOP)
     guarded = subprocess.run(
         [sys.executable, "-c", code, "guard"], capture_output=True, text=True, timeout=1800
