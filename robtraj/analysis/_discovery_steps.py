@@ -36,8 +36,9 @@ RIVAL_MARGIN = (100.0, 1e-3)
 #: effect (one-sided 2.5 %)
 Z_EQUIVALENT = 1.96
 
-#: a candidate the refit and the held-out check confirmed: (effect, its refit, its score)
-_Confirmed = tuple[str, Any, dict[str, Any]]
+#: a candidate the refit and the held-out check confirmed: (effect, its refit, its score,
+#: the space of the refit)
+_Confirmed = tuple[str, Any, dict[str, Any], tuple[str, ...]]
 
 
 def search_rounds(search: Search, state: SearchState, max_steps: int) -> SearchState:
@@ -73,7 +74,7 @@ def _round(search: Search, state: SearchState) -> SearchState:
     state, confirmed = _first_confirmed(search, state, significant[:MAX_REFITS], alpha, space)
     if confirmed is None:
         return dataclasses.replace(state, stopped="nothing_qualifies")
-    state = _name(search, state, confirmed, scores, significant, space)
+    state = _name(search, state, confirmed, scores, significant)
     # nothing structured left against any variable: no further effect can stand out
     left = structure(state.current.residuals, search.aligned_weights, search.obs.variables)
     if not any(v["significant"] for v in left.values()):
@@ -108,12 +109,13 @@ def _first_confirmed(
     heldout = search.obs.heldout
     for cand in candidates:
         search.say(f"refitting with {cand}")
+        own = _refit_space(cand, state.named, space, search.shared is not None)
         r = fit(
             search.obs.rec,
             estimate=(*state.named, cand),
             weights=search.obs.weights,
             init=state.current,
-            space=space,
+            space=own,
             robust_sigma=False,
         )
         k = free_count(r, cand)
@@ -125,12 +127,26 @@ def _first_confirmed(
             continue
         search.say(f"held-out check of {cand}")
         state = _with_heldout_gap(search, state)
-        after = heldout.gap((*state.named, cand), r, space)
+        after = heldout.gap((*state.named, cand), r, own)
         score.update(heldout_gap_before_m=state.heldout_gap, heldout_gap_after_m=after)
         if state.heldout_gap - after > state.floor:
-            return dataclasses.replace(state, heldout_gap=after), (cand, r, score)
+            return dataclasses.replace(state, heldout_gap=after), (cand, r, score, own)
         state = dataclasses.replace(state, rejected=(*state.rejected, {"effect": cand, **score}))
     return state, None
+
+
+def _refit_space(
+    cand: str, named: tuple[str, ...], space: tuple[str, ...], shared: bool
+) -> tuple[str, ...]:
+    """The space `cand` is refitted in beside the `named` effects: the round's `space`,
+    except for a joint angle error map when the search is not in one `shared` space:
+    the named effects and the map alone. Every pass of a fit builds the normal equations
+    of its whole space, and a held map's hundreds of knots cost more there, pass after
+    pass, than one compilation of the smaller space."""
+    t = term(cand)
+    if shared or t is None or not t.knots:
+        return space
+    return tuple(dict.fromkeys((*named, cand)))
 
 
 def _with_heldout_gap(search: Search, state: SearchState) -> SearchState:
@@ -147,13 +163,12 @@ def _name(
     confirmed: _Confirmed,
     scores: dict[str, dict[str, Any]],
     significant: list[str],
-    space: tuple[str, ...],
 ) -> SearchState:
     """Name the `confirmed` candidate: its deadband profiled (a motion term), the
     candidates the score test cannot tell from it noted, the effects it made redundant
     dropped (a dictionary term), the fit reported with the cluster-robust σ, and the
     step added."""
-    best, current, score = confirmed
+    best, current, score, space = confirmed
     state = dataclasses.replace(state, current=current, space=space, robust=False)
     state, score, interval = _deadband(search, state, best, score)
     # candidates the score test cannot tell from the named one

@@ -120,6 +120,21 @@ def test_a_space_per_round_gives_the_search_of_one_shared_space(monkeypatch):
     np.testing.assert_allclose(per_round.calibration.chi2, shared.calibration.chi2, rtol=1e-10)
 
 
+def test_a_map_is_refitted_in_the_space_of_the_named_effects_and_itself():
+    """In a round of its own space, a joint angle error map is refitted beside the named
+    effects alone, not beside the other maps of its round (every pass builds the normal
+    equations of the whole space: 256 held knots each); any other candidate, and every
+    candidate of a search in one shared space, in the round's space. The estimate is the
+    same either way (`test_a_space_per_round_gives_the_search_of_one_shared_space`)."""
+    from robtraj.analysis._discovery_steps import _refit_space
+
+    named = ("link_length",)
+    space = ("link_length", "joint2_map", "joint5_map", "joint1_harmonic2")
+    assert _refit_space("joint5_map", named, space, False) == ("link_length", "joint5_map")
+    assert _refit_space("joint1_harmonic2", named, space, False) == space
+    assert _refit_space("joint5_map", named, space, True) == space
+
+
 @pytest.mark.exhaustive
 @pytest.mark.parametrize("scale", [1.0, 2.0])
 @pytest.mark.parametrize("hidden", list(HIDDEN))
