@@ -49,12 +49,27 @@ def _random_case(n, m, seed, *, near_pi=False, planar=False, occlusion=0.3, nois
     return model, measured, weights
 
 
+_SEEDS = {"generic": 11, "near_pi": 12, "planar": 957, "no_noise": 14, "many_frames_model": 15}
+
+
+def _rotation_tolerance(condition):
+    """Per-frame bound on the difference of two float64 rotations of the same data.
+
+    Both the reference (SVD) and Horn's eigenvector lose digits as ``eps / gap``, the
+    relative gap of the top eigenvalue (Wilkinson), which `condition` bounds from below.
+    Over 4 000 random cases (160 000 frames) the largest difference was 694 eps/condition;
+    1e4 leaves a factor 14. Well-spread frames keep the absolute 1e-10.
+    """
+    return np.maximum(1e-10, 1e4 * np.finfo(np.float64).eps / np.asarray(condition))
+
+
 @pytest.mark.parametrize("kind", ["generic", "near_pi", "planar", "no_noise", "many_frames_model"])
 def test_matches_scipy_align_vectors(kind):
+    # planar's seed holds a frame of three visible LEDs near a line (condition 1.5e-5)
     model, measured, weights = _random_case(
         40,
         8,
-        seed=hash(kind) % 1000,
+        seed=_SEEDS[kind],
         near_pi=kind == "near_pi",
         planar=kind == "planar",
         noise=0.0 if kind == "no_noise" else 20e-6,
@@ -66,8 +81,11 @@ def test_matches_scipy_align_vectors(kind):
     q = np.asarray(fit.quaternion_wxyz)
     assert np.all(q[:, 0] >= 0)
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-14)
-    np.testing.assert_allclose(np.asarray(quat_to_matrix(fit.quaternion_wxyz)), rot_ref, atol=1e-10)
-    np.testing.assert_allclose(np.asarray(fit.position), pos_ref, atol=1e-10)
+    tol = _rotation_tolerance(fit.condition)
+    rot_err = np.abs(np.asarray(quat_to_matrix(fit.quaternion_wxyz)) - rot_ref).max(axis=(1, 2))
+    pos_err = np.abs(np.asarray(fit.position) - pos_ref).max(axis=1)
+    assert np.all(rot_err <= tol), (rot_err / tol).max()
+    assert np.all(pos_err <= tol), (pos_err / tol).max()
     n_used = ((weights > 0) & np.all(np.isfinite(measured), axis=2)).sum(1)
     np.testing.assert_array_equal(np.asarray(fit.n_used), n_used)
     # rms = sqrt(Σ w |r|² / Σ w) of the reference pose
