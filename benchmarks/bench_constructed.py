@@ -28,24 +28,18 @@ from pathlib import Path
 os.environ.setdefault("ROBTRAJ_JAX_CACHE", "off")
 
 import jax  # noqa: E402
-import numpy as np  # noqa: E402
 
 import robtraj  # noqa: E402, F401
 from robtraj.analysis.discrepancy import discover  # noqa: E402
-from robtraj.sim import simulate  # noqa: E402
+from robtraj.sim import CrossJointError, simulate  # noqa: E402
 
 TARGET_S = 60.0
 EXPECTED = "joint2_by_q3h3_q4h1"
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 
 
-class CableCarrier:
-    """Joint 2's logged angle is off by 6e-4·cos(3·q3)·sin(q4) [rad]."""
-
-    def log(self, time, joints):
-        out = joints.copy()
-        out[:, 1] -= 6e-4 * np.cos(3 * joints[:, 2]) * np.sin(joints[:, 3])
-        return out
+#: joint 2's logged angle off by 6e-4·cos(3·q3)·sin(q4) [rad] (a cable carrier)
+CABLE_CARRIER = CrossJointError(2, 6e-4, (("cos", 3, 3), ("sin", 1, 4)))
 
 
 def main() -> int:
@@ -55,7 +49,7 @@ def main() -> int:
     ap.add_argument("--json", metavar="PATH", default="benchmarks/results/constructed_cpu.json")
     a = ap.parse_args()
     rec = simulate(
-        "calibration", seed=0, duration=a.duration, rate=a.rate, unmodelled=[CableCarrier()]
+        "calibration", seed=0, duration=a.duration, rate=a.rate, unmodelled=[CABLE_CARRIER]
     ).replace(truth=None)
 
     compiled = []

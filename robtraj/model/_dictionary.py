@@ -420,17 +420,25 @@ def amplitude_phase(values: np.ndarray, cov: np.ndarray) -> tuple[float, float, 
 
 
 def _fmt(value: float, sigma: float, unit: str) -> str:
-    if unit == "rad":
-        return f"{value * 1e3:.3g} ± {sigma * 1e3:.2g} mrad"
-    if unit == "m":
-        return f"{value * 1e6:.3g} ± {sigma * 1e6:.2g} µm"
-    return f"{value:.3g} ± {sigma:.2g} {unit}"
+    """``value ± sigma unit`` in mrad for rad and µm for m: σ to two significant digits
+    and the value to the same decimal place (``0.600000 ± 0.000096 mrad``)."""
+    scale, unit = {"rad": (1e3, "mrad"), "m": (1e6, "µm")}.get(unit, (1.0, unit))
+    value, sigma = _rounded(value * scale, sigma * scale)
+    return f"{value} ± {sigma} {unit}"
+
+
+def _rounded(value: float, sigma: float) -> tuple[str, str]:
+    """`sigma` to two significant digits and `value` to the same decimal place."""
+    if not (math.isfinite(sigma) and sigma > 0):
+        return f"{value:.3g}", f"{sigma:.2g}"
+    places = max(0, 1 - math.floor(math.log10(sigma)))
+    return f"{value:.{places}f}", f"{sigma:.{places}f}"
 
 
 def _constructed_words(t: Term, values: np.ndarray, sigma: np.ndarray) -> str:
     """A constructed term in words: its products of basis functions, those more than 2σ
-    from zero, the largest first (``joint 2 angle error −0.6 ± 0.004 mrad·cos(3·q3)·sin(q4)``;
-    per unit of a signal for a linear factor: ``0.31 ± 0.01 mrad per rad of q2``)."""
+    from zero, the largest first (``joint 2 angle error −0.6000 ± 0.0040 mrad·cos(3·q3)·sin(q4)``;
+    per unit of a signal for a linear factor: ``0.310 ± 0.010 mrad per rad of q2``)."""
     words = _constructed.function_words(t.factors)
     per = [f.unit for f in t.factors if f.unit]
     order = np.argsort(-np.abs(values) / np.where(sigma > 0, sigma, np.inf))
@@ -461,10 +469,11 @@ def describe(t: Term, values: np.ndarray, cov: np.ndarray) -> str:
         return _constructed_words(t, values, sig)
     if t.harmonic:
         a, sa, phi, sp = amplitude_phase(values, cov)
+        phase, phase_sigma = _rounded(abs(phi), sp)
         return (
             f"joint {t.joint + 1} angle error {_fmt(a, sa, t.unit)} · "
-            f"sin({t.harmonic}·{t.variable} {'+' if phi >= 0 else '−'} {abs(phi):.2f} rad)"
-            f" (phase σ {sp:.2f} rad)"
+            f"sin({t.harmonic}·{t.variable} {'+' if phi >= 0 else '−'} {phase} rad)"
+            f" (phase σ {phase_sigma} rad)"
         )
     parts = ", ".join(f"{c} {_fmt(v, s, t.unit)}" for c, v, s in zip(t.components, values, sig))
     what = f"joint {t.joint + 1} angle error" if t.kind == "joint" else t.name.replace("_", " ")

@@ -22,6 +22,7 @@ from ._simulate import (
 )
 from ._static_poses import POSE_NOISE, UR10_RANGES, static_pose_series
 from ._unmodelled import (
+    CrossJointError,
     PeriodicJointError,
     SightLineBias,
     VelocityDeadbandError,
@@ -31,6 +32,7 @@ from ._unmodelled import (
 __all__ = [
     "CONTROLLER_EPOCH",
     "CampaignFiles",
+    "CrossJointError",
     "write_campaign",
     "DEFAULT_DURATION",
     "ISO_CUBE_CENTRE",

@@ -34,6 +34,37 @@ class PeriodicJointError:
         return out
 
 
+_FACTORS = {"sin": np.sin, "cos": np.cos}
+
+
+@dataclasses.dataclass(frozen=True)
+class CrossJointError:
+    """The encoder of `joint` (1-based) is off by ``amplitude·Π f(c·q_of)`` [rad], one
+    factor per ``(f, c, of)`` of `factors`: f ``"sin"`` or ``"cos"``, c cycles per
+    revolution, `of` the 1-based joint whose true angle [rad] it reads (a cable carrier
+    or dress pack pulling one axis as others turn, a coupled transmission). The
+    controller logs the true angle minus it."""
+
+    joint: int
+    amplitude: float
+    factors: tuple[tuple[str, int | float, int], ...]
+
+    def __post_init__(self):
+        bad = [f for f, _, _ in self.factors if f not in _FACTORS]
+        if bad or not self.factors:
+            raise ValueError(
+                f"factors must be (sin|cos, cycles, joint) triples, got {self.factors}"
+            )
+
+    def log(self, time: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        error = np.full(joints.shape[0], self.amplitude)
+        for f, cycles, of in self.factors:
+            error = error * _FACTORS[f](cycles * joints[:, of - 1])
+        out = joints.copy()
+        out[:, self.joint - 1] -= error
+        return out
+
+
 def joint_harmonics(
     seed: int, amplitude: float, joints: int = 6, cycles: tuple[int, ...] = (1, 2, 3)
 ) -> list[PeriodicJointError]:

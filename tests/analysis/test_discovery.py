@@ -30,7 +30,13 @@ from robtraj.model import (
     term,
     unregister_effect,
 )
-from robtraj.sim import PeriodicJointError, SightLineBias, VelocityDeadbandError, simulate
+from robtraj.sim import (
+    CrossJointError,
+    PeriodicJointError,
+    SightLineBias,
+    VelocityDeadbandError,
+    simulate,
+)
 
 #: hidden effect → (its unmodelled physics at amplitude a, the term that names it, a)
 HIDDEN = {
@@ -182,13 +188,7 @@ def test_a_registered_term_is_searched_and_named():
     structure is reported unexplained. (CI runs the same with `notebooks/discrepancy.ipynb`,
     which asserts it.)"""
 
-    class Coupled:
-        def log(self, time, joints):
-            out = joints.copy()
-            out[:, 1] -= 6e-4 * np.cos(joints[:, 2])
-            return out
-
-    rec = _recording([Coupled()])
+    rec = _recording([CrossJointError(2, 6e-4, (("cos", 1, 3),))])
     before = discover(rec)
     assert before.unexplained or before.named != ["joint2_cos_q3"]
     register_effect(

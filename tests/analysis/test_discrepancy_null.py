@@ -13,6 +13,7 @@ from test_discrepancy import _hidden
 from robtraj import write_recording
 from robtraj.analysis.discrepancy import discover
 from robtraj.cli import main
+from robtraj.sim import CrossJointError, PeriodicJointError
 
 
 @pytest.mark.parametrize(
@@ -30,23 +31,24 @@ def test_nothing_hidden_nothing_named_and_the_gap_within_its_floor(seeds, allowe
     assert len(above) <= allowed, above
 
 
-def _logged(rec, error):
-    q = rec.robot.joints.copy()
-    q[:, 1] -= error(q)
+def _logged(rec, hidden):
+    """`rec` with the robot log `hidden` (a `robtraj.sim` joint effect) makes of it."""
+    q = hidden.log(rec.robot.time, rec.robot.joints)
     return rec.replace(robot=rec.robot.__class__(rec.robot.time, q, rec.robot.model, rec.robot.dh))
 
 
 def _periodic_encoder_error(seed=3):
     """The encoder of joint 2 has a periodic error: the logged angle is off by A·sin(4·q2)."""
-    return _logged(_hidden({}, seed=seed)[0], lambda q: 4e-4 * np.sin(4 * q[:, 1]))
+    return _logged(_hidden({}, seed=seed)[0], PeriodicJointError(2, 4, 4e-4))
 
 
 def _coupled_error(seed=3):
     """Joint 2's angle is off by a function of joints 3 and 4 (a cable carrier): in
     neither the library nor the dictionary (a constructed term, the product of a harmonic
     of each)."""
-    rec = _hidden({}, seed=seed)[0]
-    return _logged(rec, lambda q: 6e-4 * np.cos(3 * q[:, 2]) * np.sin(q[:, 3]))
+    return _logged(
+        _hidden({}, seed=seed)[0], CrossJointError(2, 6e-4, (("cos", 3, 3), ("sin", 1, 4)))
+    )
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,7 @@ import pytest
 
 from robtraj.analysis._localisation import KNOTS, basis, heldout_fraction, moments
 from robtraj.analysis.discrepancy import Localisation, where_gap_lives
-from robtraj.sim import simulate
+from robtraj.sim import CrossJointError, simulate
 
 # ----------------------------------------------------------------------------- the core
 
@@ -196,24 +196,6 @@ def test_the_words_name_the_top_variable_with_its_fraction_and_the_next():
 # ----------------------------------------------------------------------------- recordings
 
 
-@dataclasses.dataclass(frozen=True)
-class CoupledJointError:
-    """The encoder of `joint` (1-based) is off by ``amplitude·sin(cycles·q_of)``, a
-    function of another joint's angle `of` (a cable or a coupled transmission): in no
-    library effect and no dictionary term. The controller logs the true angle minus it
-    (the hook of `robtraj.sim.simulate(unmodelled=…)`)."""
-
-    joint: int
-    of: int
-    cycles: float
-    amplitude: float
-
-    def log(self, time, joints):
-        out = joints.copy()
-        out[:, self.joint - 1] -= self.amplitude * np.sin(self.cycles * joints[:, self.of - 1])
-        return out
-
-
 def _recording(seed, unmodelled=(), drift=0.0):
     """The `workspace` scenario, 24 s at 25 Hz; `drift` [m]: every LED measured that much
     times sin(2π t/T) off along a fixed direction of the camera (a mount that sways over
@@ -229,13 +211,13 @@ def _recording(seed, unmodelled=(), drift=0.0):
 FAMILIES = {
     # 1e-4 rad of joint 2 is 0.1 mm at the TCP, about 1 m from its axis
     "joint 2 angle error ∝ sin(6·q1)": (
-        lambda a, s: _recording(s, (CoupledJointError(2, 1, 6.0, a),)),
+        lambda a, s: _recording(s, (CrossJointError(2, a, (("sin", 6.0, 1),)),)),
         (1e-4, 3e-4),
         {"joint 1"},
     ),
     # joint 5 is about 0.2 m from the TCP: 5e-4 rad is 0.1 mm
     "joint 5 angle error ∝ sin(2·q1)": (
-        lambda a, s: _recording(s, (CoupledJointError(5, 1, 2.0, a),)),
+        lambda a, s: _recording(s, (CrossJointError(5, a, (("sin", 2.0, 1),)),)),
         (5e-4, 1e-3),
         {"joint 1"},
     ),

@@ -9,6 +9,7 @@ from robtraj.model import (
     Effects,
     abb_irb2400_16,
     default_terms,
+    describe,
     dictionary,
     effect_component_names,
     effective_joints,
@@ -114,3 +115,15 @@ def test_terms_round_trip_and_bad_values_are_user_errors():
     # the joint angle error maps are terms, but not among the search's defaults
     assert len(default_terms(6)) == len(dictionary(6)) + len(joint_maps(6))
     assert not set(joint_maps(6)) & set(dictionary(6))
+
+
+def test_a_fitted_term_is_quoted_to_the_digits_its_sigma_supports():
+    """σ to two significant digits, the value to the same decimal place: a tight σ keeps
+    the value's digits, a wide one drops those it cannot support."""
+    harmonic = term("joint1_harmonic2")
+    tight = describe(harmonic, np.array([6e-4, 0.0]), np.diag([9.6e-8, 9.6e-8]) ** 2)
+    assert tight.startswith("joint 1 angle error 0.600000 ± 0.000096 mrad · sin(2·q1 + "), tight
+    wide = describe(harmonic, np.array([2.5e-4, 1e-5]), np.diag([1e-5, 1e-5]) ** 2)
+    assert (
+        wide == "joint 1 angle error 0.250 ± 0.010 mrad · sin(2·q1 + 0.040 rad) (phase σ 0.040 rad)"
+    )

@@ -16,7 +16,7 @@ from robtraj.model import (
     predict_tool_poses,
     robot_from_log,
 )
-from robtraj.sim import simulate
+from robtraj.sim import CrossJointError, simulate
 
 NOISELESS = CameraModel(sigma0=0.0, dropout=0.0)
 EFFECTS = {
@@ -123,6 +123,30 @@ def test_seeded_and_reproducible():
     assert not np.array_equal(a.visible & c.visible, a.visible) or not np.allclose(
         np.nan_to_num(a.positions), np.nan_to_num(c.positions)
     )
+
+
+def test_a_cross_joint_error_is_subtracted_from_the_logged_angle_only():
+    """The controller logs joint 2's true angle minus 6e-4·cos(3·q3)·sin(q4) [rad]; the
+    tracker sees the same arm; the truth names the effect; a bad factor is refused."""
+    hidden = CrossJointError(2, 6e-4, (("cos", 3, 3), ("sin", 1, 4)))
+    kw = dict(scenario="crossing", seed=7, duration=2.0, rate=50.0)
+    plain, carried = simulate(**kw), simulate(**kw, unmodelled=[hidden])
+    q = plain.robot.joints
+    expected = q.copy()
+    expected[:, 1] = q[:, 1] - 6e-4 * np.cos(3 * q[:, 2]) * np.sin(q[:, 3])
+    np.testing.assert_array_equal(carried.robot.joints, expected)
+    assert np.ptp(q[:, 1] - expected[:, 1]) > 1e-4  # the product varies over the motion
+    np.testing.assert_array_equal(carried.positions, plain.positions)
+    assert carried.truth.effects["unmodelled"] == [
+        {
+            "kind": "CrossJointError",
+            "joint": 2,
+            "amplitude": 6e-4,
+            "factors": (("cos", 3, 3), ("sin", 1, 4)),
+        }
+    ]
+    with pytest.raises(ValueError, match="sin|cos"):
+        CrossJointError(2, 1e-4, (("tan", 1, 3),))
 
 
 def test_paper_reorientation_loses_and_gains_leds():
