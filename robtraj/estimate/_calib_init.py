@@ -250,14 +250,22 @@ def robot_world_hand_eye(
 
 def start_effects(data: CalibrationData, free: tuple[str, ...], init) -> Effects:
     """The effects a fit starts from: `init`'s values (a `CalibrationResult`), zero
-    without one; with the dictionary's terms among `free` and `init`'s."""
-    init_terms = [n for n in (init.effects if init is not None else ()) if n not in EFFECT_NAMES]
+    without one; with the dictionary's terms among `free` and those of `init` that are
+    non-zero. A term at zero outside `free` adds nothing to the model; left out, fits in
+    one space compile once whatever their start carried (the refit of a search from a fit
+    in a wider space, and the held-out fits from that refit)."""
+    init_terms = [
+        n
+        for n, v in (init.effects.items() if init is not None else ())
+        if n not in EFFECT_NAMES and (n in free or np.any(np.asarray(v) != 0))
+    ]
     effects = Effects.zeros(
         data.robot.n_joints, tuple(dict.fromkeys((*dictionary_terms(free), *init_terms)))
     )
     if init is not None:
         for k, v in init.effects.items():
-            effects = effects.with_value(k, v)
+            if k in EFFECT_NAMES or k in effects.terms:
+                effects = effects.with_value(k, v)
     return effects
 
 
