@@ -394,7 +394,7 @@ def equivalence_step(search: Search, state: SearchState) -> SearchState:
         rivals = _rivals(step) if step.effect in state.named else ()
         if rivals:
             space = search.shared or tuple(dict.fromkeys((*state.space, *rivals)))
-            named = search.obs.heldout.chi2(state.named, search.nominal, space)
+            named = search.obs.heldout.chi2(state.named, state.current, space)
             found = (_equivalent(search, state, step, r, named, space) for r in rivals)
             step = dataclasses.replace(step, equivalent=tuple(e for e in found if e))
         steps.append(step)
@@ -436,11 +436,11 @@ def _equivalent(search: Search, state: SearchState, step: Step, rival: str, name
     obs = search.obs
     named = tuple(rival if e == step.effect else e for e in state.named)
     search.say(f"is {rival} in place of {step.effect} equally supported?")
-    z, worse = vuong(named_chi2, obs.heldout.chi2(named, search.nominal, space))
-    if z >= Z_EQUIVALENT:
-        return None
     r = fit(obs.rec, estimate=named, weights=obs.weights, init=search.nominal, space=space,
             robust_sigma=False)  # fmt: skip
+    z, worse = vuong(named_chi2, obs.heldout.chi2(named, r, space))
+    if z >= Z_EQUIVALENT:
+        return None
     poses = separating_poses(
         obs.rec, obs.noise, obs.angles, (step.effect, state.current), (rival, r)
     )

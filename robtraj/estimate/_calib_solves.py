@@ -17,7 +17,7 @@ from . import _calib_problem as cp
 from ._calib_frames import Weights
 from ._calib_problem import BundleData, bundle_normal
 from ._calib_setup import Setup
-from ._solve import Solution, default_solver, solve
+from ._solve import Solution, default_solver, gauss_newton_step, solve
 from ._uncertainty import identifiability
 
 ROBUST = ("huber", "cauchy")
@@ -31,14 +31,16 @@ _ROBUST_PASSES = 5
 @dataclasses.dataclass(frozen=True)
 class SolveSettings:
     """How a fit solves: the Optimistix `solver`, its name in the progress lines
-    (`method`), the steps allowed per solve, the robust loss (None or one of `ROBUST`)
-    and the parameter groups held at their start values (`HOLDABLE`)."""
+    (`method`), the steps allowed per solve, the robust loss (None or one of `ROBUST`),
+    the parameter groups held at their start values (`HOLDABLE`), and whether the fit is
+    one Gauss–Newton step from its start (`one_step`) instead of a solve."""
 
     solver: Any
     method: str
     max_steps: int
     robust: str | None
     hold: tuple[str, ...]
+    one_step: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,16 +73,25 @@ class Solved:
         return sum(s.steps for s in self.solutions)
 
 
-def solve_settings(solver, max_iter: int, robust: str | None, hold: Sequence[str]) -> SolveSettings:
+def solve_settings(
+    solver, max_iter: int, robust: str | None, hold: Sequence[str], one_step: bool = False
+) -> SolveSettings:
     """The solves' settings (default solver: Levenberg–Marquardt, `default_solver`);
-    `UserError` for an unknown robust loss or parameter group."""
+    `UserError` for an unknown robust loss or parameter group; `ValueError` for one
+    Gauss–Newton step with a robust loss (whose passes are solves)."""
+    if one_step and robust is not None:
+        raise ValueError("one Gauss–Newton step takes no robust loss")
     if robust is not None and robust not in ROBUST:
         raise UserError(f"unknown robust loss {robust!r} (choose from {', '.join(ROBUST)})")
     bad = [h for h in hold if h not in HOLDABLE]
     if bad:
         raise UserError(f"cannot hold {', '.join(bad)} (choose from {', '.join(HOLDABLE)})")
     method = type(solver).__name__ if solver else "Levenberg–Marquardt"
-    return SolveSettings(solver or default_solver(), method, max_iter, robust, tuple(hold))
+    if one_step:
+        method = "one Gauss–Newton step"
+    return SolveSettings(
+        solver or default_solver(), method, max_iter, robust, tuple(hold), one_step
+    )
 
 
 def weighted_solve(st: Setup, how: SolveSettings, say: Callable[[str], None]) -> Solved:
@@ -99,6 +110,17 @@ def weighted_solve(st: Setup, how: SolveSettings, say: Callable[[str], None]) ->
         st.noise_info["kind"], "noise-weighted fit"
     )
     say(f"{label}: {how.method}")
+    if how.one_step:
+        sol = gauss_newton_step(np.zeros(len(st.names_theta)), free, st.normal0)
+        problem = cp.recentre(st.bundle.problem, sol.theta, st.bundle.basis)
+        return Solved(
+            dataclasses.replace(st.bundle, problem=problem),
+            free,
+            ident,
+            st.w_user,
+            st.w_user,
+            (sol,),
+        )
     bundle, sol = _solve_pass(st, st.bundle, free, how, st.normal0)
     return Solved(bundle, free, ident, st.w_user, st.w_user, (sol,))
 

@@ -40,7 +40,7 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int
 
 from .._errors import UserError
-from ._uncertainty import RCOND, column_scale
+from ._uncertainty import RCOND, column_scale, covariance
 
 #: diagonal of the scaled normal matrix: Optimistix's trust region starts at damping
 #: λ = 1, i.e. 1/`DIAGONAL` of the diagonal (close to Gauss–Newton: the closed-form start
@@ -189,6 +189,23 @@ class Solution:
     #: ``normal(theta, data)`` where the solver evaluated it at `theta` itself (None
     #: otherwise): a caller's covariance needs no further pass over the data
     normal: tuple | None = None
+
+
+def gauss_newton_step(theta0, free, start: tuple) -> Solution:
+    """One Gauss–Newton step from `theta0`, on the normal equations there (`start` =
+    ``normal(theta0, data)``): ``θ = θ₀ + H⁺ b`` on the `free` entries (the column-scaled
+    pseudo-inverse of `robtraj.estimate.covariance`, null directions left out). `cost` is
+    the step's predicted ``cost − bᵀ H⁺ b``; `converged` is True by construction.
+
+    For a problem nearly linear over the step, e.g. a refit of part of the observations
+    from the optimum on all of them, this is that part's optimum to second order in the
+    step, for no pass beyond the one that gave `start`."""
+    h, b, cost = start
+    b = np.asarray(b)
+    inv, _ = covariance(np.asarray(h), np.asarray(free, bool))
+    step = inv @ b
+    theta = np.asarray(theta0, np.float64) + step
+    return Solution(theta, float(cost) - float(b @ step), True, "one Gauss–Newton step", 1)
 
 
 def normal_at(normal: Callable, theta, data):

@@ -179,6 +179,7 @@ def fit(
     robust_sigma: bool = True,
     motion_threshold: float | None = None,
     per_observation: bool = True,
+    one_step: bool = False,
 ) -> CalibrationResult:
     """Bundle-calibrate `recording` (see the module docstring).
 
@@ -220,12 +221,19 @@ def fit(
       `robtraj.open_recording`: the fit reads its frames block by block, in memory
       independent of its length).
 
+    - `one_step`: one Gauss–Newton step from the start instead of a solve to
+      convergence (`robtraj.estimate.gauss_newton_step`): for a start at the optimum of
+      a problem that the fit's `weights` change only a little (the discrepancy search's
+      held-out fits, which start from the fit to the whole recording), that optimum to
+      second order in the step, for one pass over the recording instead of one per
+      solver step. No robust loss.
+
     **Returns:** a `CalibrationResult` (`converged` False, with the reason in
     `convergence`, when a solve stopped before its criterion held). Raises `UserError`
     for unusable input.
     """
     say = progress or (lambda _msg: None)
-    how = solve_settings(solver, max_iter, robust, hold)
+    how = solve_settings(solver, max_iter, robust, hold, one_step)
     estimate = tuple(dict.fromkeys((*clock_effects(recording.robot), *estimate)))
     st = setup(
         recording,

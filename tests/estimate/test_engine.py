@@ -11,7 +11,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from robtraj import UserError
-from robtraj.estimate import covariance, identifiability, normal_at, solve
+from robtraj.estimate import covariance, gauss_newton_step, identifiability, normal_at, solve
 
 
 def _linear_normal(theta, data):
@@ -58,6 +58,36 @@ def test_fixed_parameters_stay_and_the_rest_is_the_reduced_optimum(linear):
     ref = np.linalg.lstsq((sw[:, None] * a)[:, free], sw * (y - a[:, 2] * 123.0), rcond=None)[0]
     assert sol.theta[2] == 123.0
     np.testing.assert_allclose(sol.theta[free], ref, rtol=1e-9)
+
+
+def test_one_gauss_newton_step_solves_a_linear_problem_and_keeps_fixed_entries(linear):
+    a, y, sw = (np.asarray(x) for x in linear)
+    theta0 = np.array([1.0, 0.0, 123.0, -2.0])
+    free = np.array([True, True, False, True])
+    sol = gauss_newton_step(theta0, free, normal_at(_linear_normal, theta0, linear))
+    ref = np.linalg.lstsq((sw[:, None] * a)[:, free], sw * (y - a[:, 2] * 123.0), rcond=None)[0]
+    assert sol.theta[2] == 123.0 and sol.converged and sol.steps == 1
+    np.testing.assert_allclose(sol.theta[free], ref, rtol=1e-9)
+    # the predicted cost is the cost there (the problem is linear)
+    np.testing.assert_allclose(sol.cost, np.sum((sw * (y - a @ sol.theta)) ** 2), rtol=1e-9)
+
+
+def test_one_step_from_the_whole_optimum_reaches_the_optimum_of_a_part():
+    """Second order: from the optimum on every point, one step on half of them lands on
+    their optimum (scipy) with an error of second order in the move (|move|² here)."""
+    rng = np.random.default_rng(1)
+    t = np.linspace(0, 4, 60)
+    y = 2.0 * np.exp(-1.3 * t) + 0.5 + rng.normal(0, 0.01, t.size)
+    whole = least_squares(lambda p: np.asarray(_exp_residual(jnp.asarray(p), t, y)),
+                          np.array([1.0, 0.5, 0.0]), xtol=1e-14).x  # fmt: skip
+    half = t < 2.0
+    part = least_squares(lambda p: np.asarray(_exp_residual(jnp.asarray(p), t[half], y[half])),
+                         whole, xtol=1e-14).x  # fmt: skip
+    data = (jnp.asarray(t[half]), jnp.asarray(y[half]))
+    sol = gauss_newton_step(whole, np.ones(3, bool), normal_at(_exp_normal, whole, data))
+    move = np.max(np.abs(part - whole))
+    assert move > 1e-3  # half the points do move the optimum
+    assert np.max(np.abs(sol.theta - part)) < move**2
 
 
 def test_nonlinear_fit_matches_scipy_and_any_optimistix_solver_runs():
