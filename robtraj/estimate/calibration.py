@@ -220,7 +220,6 @@ def fit(
       `weights`); False for a recording of any length (`recording` opened with
       `robtraj.open_recording`: the fit reads its frames block by block, in memory
       independent of its length).
-
     - `one_step`: one Gauss–Newton step from the start instead of a solve to
       convergence (`robtraj.estimate.gauss_newton_step`): for a start at the optimum of
       a problem that the fit's `weights` change only a little (the discrepancy search's
