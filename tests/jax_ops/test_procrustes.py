@@ -95,6 +95,30 @@ def test_matches_scipy_align_vectors(kind):
     np.testing.assert_allclose(np.asarray(fit.rms), rms, rtol=1e-6, atol=1e-12)
 
 
+@pytest.mark.exhaustive
+def test_the_tolerance_holds_over_4000_random_cases():
+    """The constant of `_rotation_tolerance`: over 1 000 seeds of each kind (160 000
+    frames) the rotation and position differences stay within it (measured: at most
+    694 eps/condition, a factor 14 below)."""
+    for kind in ("generic", "near_pi", "planar", "no_noise"):
+        for seed in range(1000):
+            model, measured, weights = _random_case(
+                40, 8, seed=seed, near_pi=kind == "near_pi", planar=kind == "planar",
+                noise=0.0 if kind == "no_noise" else 20e-6,
+            )  # fmt: skip
+            fit = weighted_procrustes(
+                jnp.asarray(model), jnp.asarray(measured), jnp.asarray(weights)
+            )
+            rot_ref, pos_ref = _scipy_fit(model, measured, weights)
+            tol = _rotation_tolerance(fit.condition)
+            rot = np.asarray(quat_to_matrix(fit.quaternion_wxyz))
+            assert np.all(np.abs(rot - rot_ref).max(axis=(1, 2)) <= tol), (kind, seed)
+            assert np.all(np.abs(np.asarray(fit.position) - pos_ref).max(axis=1) <= tol), (
+                kind,
+                seed,
+            )
+
+
 def test_degenerate_frames_are_flagged_with_nan_pose():
     model = np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], [0, 0.1, 0], [0.05, 0.05, 0.08]])
     measured = np.broadcast_to(model + [1.0, 2.0, 3.0], (5, 5, 3)).copy()
