@@ -8,7 +8,8 @@ import os
 def _one_thread_per_worker():
     """Workers that fill the cores run one thread each (XLA's intra-op pool and BLAS):
     two workers of two threads each on two cores spend a third of their time contending
-    (a discovery test pair: 118 s together, 82 s one thread each, 43 s one alone)."""
+    (two copies of the 20-seed null test: 118 s together, 82 s one thread each; 43 s
+    one alone)."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers < 2 or (os.cpu_count() or 1) // workers > 1:
         return
