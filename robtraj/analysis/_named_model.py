@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
+from ..estimate import POSE_EFFECTS, pose_effects, pose_theta
 from ..estimate.calibration import CalibrationResult
 from ..model import (
     MAP_KNOTS,
@@ -35,23 +36,16 @@ from ..model import (
 )
 from ..recording import Pose, Recording
 from ._pose_fit import (
-    _EFFECT_ORDER,
     HARMONIC_TERMS,
     MAP_TERMS,
     N_PARAMS,
     PoseFit,
-    _effects_of,
-    _slices,
     fit_poses,
     frozen_fit,
-    n_params,
     parameter_names,
     parse_effect_spec,
 )
 from ._pose_series import PoseSeries, series_from_recording
-
-#: the bundle calibration's name of the pose fit's flange←probe
-_TOOL = ("flange_from_probe.", "flange_from_tool.")
 
 
 def pose_calibration(
@@ -68,7 +62,7 @@ def pose_calibration(
     `noise_m` the tracker's per-axis position noise [m] (0: not reported) and `source`
     the recording's path (provenance)."""
     entries = _calibrated_entries(fit)
-    names = [_renamed(parameter_names()[i]) for i in entries]
+    names = [parameter_names()[i] for i in entries]
     sigma = np.asarray(fit.sigma)[entries]
     return CalibrationResult(
         camera_from_base=_camera_at_first_frame(fit, series),
@@ -115,13 +109,9 @@ def _calibrated_entries(fit: PoseFit) -> np.ndarray:
     return np.flatnonzero(np.asarray(fit.free[:N_PARAMS]))
 
 
-def _renamed(name: str) -> str:
-    return name.replace(*_TOOL)
-
-
 def _camera_at_first_frame(fit: PoseFit, series: PoseSeries):
     """camera←base at the first pose's drift variable (the recording's convention)."""
-    eff = _effects_of(jnp.asarray(fit.theta))
+    eff = pose_effects(jnp.asarray(fit.theta))
     first = jnp.asarray(series.drift_variable[:1])
     z = camera_from_base_at(jaxlie.SE3(jnp.asarray(fit.camera_from_base)), eff, first)
     return Pose.from_wxyz_xyz(np.asarray(z.wxyz_xyz)[0])
@@ -130,7 +120,7 @@ def _camera_at_first_frame(fit: PoseFit, series: PoseSeries):
 def _effect_values(fit: PoseFit, named: Sequence[str]) -> dict[str, Any]:
     """The named effects' values by effect name (a per-joint subset such as
     ``joint_compliance[1,2]`` is the whole field, zero on the joints not estimated)."""
-    values = _effects_of(jnp.asarray(fit.theta))
+    values = pose_effects(jnp.asarray(fit.theta))
     out: dict[str, Any] = {}
     for name in _estimated_effects(fit, named):
         out[name] = np.asarray(values.get(name)).tolist()
@@ -179,15 +169,11 @@ def _map_documents(fit: PoseFit, series: PoseSeries) -> dict[str, Any]:
 # ----------------------------------------------------------------------------- back
 
 
-#: library effects the pose fit represents (static poses: no clock, no motion, no LEDs)
-_POSE_EFFECTS = _EFFECT_ORDER[:-2]
-
-
 def pose_representable(calib: CalibrationResult) -> bool:
     """Whether every non-zero effect of `calib` is one the pose fit carries (the
     library's static-pose effects, the joint harmonics, the maps)."""
     for name, value in calib.effects.items():
-        if name in _POSE_EFFECTS or name in HARMONIC_TERMS or name in MAP_TERMS:
+        if name in POSE_EFFECTS or name in HARMONIC_TERMS or name in MAP_TERMS:
             continue
         if np.any(np.asarray(value) != 0):
             return False
@@ -199,23 +185,8 @@ def pose_model(calib: CalibrationResult, series: PoseSeries) -> PoseFit:
     θ layout (with the map block where it has maps), camera←base at the series' mean
     drift variable, flange←probe its flange←tool."""
     maps = any(t in calib.effects for t in MAP_TERMS)
-    theta = np.zeros(n_params(maps))
-    for name, sl in _slices().items():
-        if name == "joint_harmonic":
-            terms = HARMONIC_TERMS
-        elif name == "joint_map":
-            if not maps:
-                continue
-            terms = MAP_TERMS
-        else:
-            if name in calib.effects:
-                theta[sl] = np.ravel(calib.effects[name])
-            continue
-        width = (sl.stop - sl.start) // len(terms)
-        for k, t in enumerate(terms):
-            if t in calib.effects:
-                theta[sl.start + k * width : sl.start + (k + 1) * width] = calib.effects[t]
-    eff = _effects_of(jnp.asarray(theta))
+    theta = pose_theta(calib.effects_module(), maps)
+    eff = pose_effects(jnp.asarray(theta))
     z = pose_se3(calib.camera_from_base)
     first = jnp.asarray(-series.drift_variable[:1])
     z0 = np.asarray(camera_from_base_at(z, eff, first).wxyz_xyz)[0]

@@ -27,8 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from ..estimate import column_scale, spd_inverse
-from ._pose_normal import map_jvp
+from ..estimate import column_scale, map_jvp, spd_inverse
 
 
 @dataclasses.dataclass(frozen=True)

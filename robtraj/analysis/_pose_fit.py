@@ -1,7 +1,9 @@
-"""Pose-level fit of a UR10 to laser-tracker probe poses: the parameter layout, the
-measurement model through `robtraj.model`, its normal equations and weights; solved,
-with identifiability and covariance, by the package's one engine
-(`robtraj.estimate.solve`; see `robtraj.analysis.real_data` for the model)."""
+"""Pose-level fit of a UR10 to laser-tracker probe poses: the weights, the identifiable
+set, the fit by the package's one engine (`robtraj.estimate.solve`) on the 6-DOF pose
+observation kind of `robtraj.estimate` (`pose_normal`: the parameter layout, the
+measurement model through `robtraj.model` and its normal equations), its σ and the
+regions of joint space it is cross-validated on (see `robtraj.analysis.real_data` for the
+model)."""
 
 from __future__ import annotations
 
@@ -11,72 +13,68 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-from jaxtyping import Array
 from scipy.cluster.vq import kmeans2
 
 from .._blas import serial_blas
-from .._errors import UserError
 from ..estimate import (
+    POSE_HARMONIC_TERMS as HARMONIC_TERMS,
+    POSE_MAP_OFFSET,
+    POSE_MAP_PARAMS as N_MAP,
+    POSE_MAP_TERMS as MAP_TERMS,
+    POSE_PARAMS as N_PARAMS,
+    POSE_REDUNDANT,
     GaussianPrior,
     ModelErrorField,
+    PoseData,
     QuotedSigma,
-    composed,
     covariance,
     field_covariance,
+    group_members,
     identifiability,
     jackknife_covariance,
+    jacobian_rows,
+    map_prior_of,
+    map_terms_of,
     no_prior,
     normal_at,
+    parse_effect_spec,
+    pose_data,
+    pose_group_terms,
+    pose_n_params as n_params,
+    pose_normal,
+    pose_parameter_names as parameter_names,
+    pose_residual,
+    pose_slices,
+    predict_probe_poses,
     quoted_sigma,
     sigma_of,
     solve,
-    term_prior,
+    uses_maps,
+    zero_map_prior,
 )
-from ..model import (
-    HARMONICS,
-    MAP_KNOTS,
-    MAP_LENGTH,
-    MAP_SIGMA_F,
-    Effects,
-    camera_from_base_at,
-    dh_corrections,
-    effect_component_names,
-    flange_jacobian,
-    forward_kinematics,
-    joint_maps,
-    map_active,
-    map_precision,
-    map_support,
-    redundant_link_parameters,
-    ur10,
-)
+from ..model import MAP_KNOTS, MAP_LENGTH, MAP_SIGMA_F, map_support
 from ._pose_cv import Linearisation, RegionSystems, solve_scaled
-from ._pose_normal import group_members, jacobian_rows, map_index, normal_terms
 from ._pose_series import PoseSeries
 from ._quat import rotation_angle
 
-#: order of the parameter vector after the 12 rigid parameters
-_EFFECT_ORDER = (
-    "joint_offset",
-    "link_length",
-    "link_twist",
-    "joint_compliance",
-    "thermal_drift",
-    "tracker_scale",
-    "joint_harmonic",
-    "joint_map",
-)
-#: the dictionary's joint-angle harmonics, in the order of the `joint_harmonic` block
-HARMONIC_TERMS = tuple(f"joint{j + 1}_harmonic{h}" for j in range(6) for h in HARMONICS)
-#: the dictionary's joint angle error maps, in the order of the `joint_map` block (θ
-#: holds that block only in a fit that estimates or carries a map: `n_params`)
-MAP_TERMS = joint_maps(6)
-_TANGENT = ("tx", "ty", "tz", "rx", "ry", "rz")
+__all__ = [
+    "HARMONIC_TERMS",
+    "MAP_TERMS",
+    "N_MAP",
+    "N_PARAMS",
+    "map_prior_of",
+    "map_terms_of",
+    "n_params",
+    "parameter_names",
+    "parse_effect_spec",
+    "uses_maps",
+]
+
+_SL = pose_slices()
+
 #: regions of joint space the robust σ leaves out one at a time: the model error of a
 #: UR10 varies over the workspace, so a region must span a good part of it
 REGIONS = 10
@@ -97,213 +95,6 @@ FIX_PREFERENCE = (
 )
 
 # ----------------------------------------------------------------------------- parameters
-
-
-def _effect_sizes(n_joints: int = 6) -> dict[str, int]:
-    return {
-        "joint_offset": n_joints,
-        "link_length": 2 * n_joints,
-        "link_twist": 2 * n_joints,
-        "joint_compliance": n_joints,
-        "thermal_drift": 3,
-        "tracker_scale": 1,
-        "joint_harmonic": 2 * len(HARMONICS) * n_joints,
-        "joint_map": MAP_KNOTS * n_joints,
-    }
-
-
-def parameter_names(n_joints: int = 6, maps: bool = False) -> list[str]:
-    """Names of θ's entries; with `maps`, the joint angle error maps' knots at the end
-    (``joint2_map.k017``)."""
-    names = [f"camera_from_base.{t}" for t in _TANGENT]
-    names += [f"flange_from_probe.{t}" for t in _TANGENT]
-    zeros = Effects.zeros(n_joints)
-    for name in _EFFECT_ORDER[:-2]:
-        names += effect_component_names(name, np.shape(getattr(zeros, name)))
-    for t in HARMONIC_TERMS:
-        names += effect_component_names(t, (2,))
-    if maps:
-        for t in MAP_TERMS:
-            names += effect_component_names(t, (MAP_KNOTS,))
-    return names
-
-
-def _slices(n_joints: int = 6) -> dict[str, slice]:
-    out, k = {}, 12
-    for name, size in _effect_sizes(n_joints).items():
-        out[name] = slice(k, k + size)
-        k += size
-    return out
-
-
-#: θ entries without the maps (every fit's θ begins with them)
-N_PARAMS = len(parameter_names())
-#: entries of the map block
-N_MAP = MAP_KNOTS * 6
-_SL = _slices()
-#: the joint offsets' columns: the joints' turn columns, which the maps' columns scale
-_OFFSET = (_SL["joint_offset"].start, _SL["joint_offset"].stop)
-#: θ entries never estimated (Hayati's tilt of non-parallel axes, the last link's axis)
-_REDUNDANT = [parameter_names().index(n) for n in redundant_link_parameters(ur10())]
-
-
-def n_params(maps: bool) -> int:
-    """The length of θ, with or without the map block."""
-    return N_PARAMS + (N_MAP if maps else 0)
-
-
-def _has_maps(theta) -> bool:
-    return theta.shape[0] > N_PARAMS
-
-
-def _effects_of(theta) -> Effects:
-    e = Effects.zeros(6)
-    terms = {
-        t: theta[_SL["joint_harmonic"]][2 * k : 2 * k + 2] for k, t in enumerate(HARMONIC_TERMS)
-    }
-    if _has_maps(theta):
-        m = theta[_SL["joint_map"]].reshape(6, MAP_KNOTS)
-        terms.update({t: m[k] for k, t in enumerate(MAP_TERMS)})
-    return dataclasses.replace(
-        e,
-        joint_offset=theta[_SL["joint_offset"]],
-        link_length=theta[_SL["link_length"]].reshape(6, 2),
-        link_twist=theta[_SL["link_twist"]].reshape(6, 2),
-        joint_compliance=theta[_SL["joint_compliance"]],
-        thermal_drift=theta[_SL["thermal_drift"]],
-        tracker_scale=theta[_SL["tracker_scale"]][0],
-        terms=terms,
-    )
-
-
-def _harmonics(joints) -> Array:
-    """`(N, joints, 2·H)`: ``[sin(h·q), cos(h·q)]`` per joint and harmonic h."""
-    hq = joints[..., None] * jnp.asarray(HARMONICS, joints.dtype)
-    return jnp.stack([jnp.sin(hq), jnp.cos(hq)], -1).reshape(*joints.shape, -1)
-
-
-def _flange(eff: Effects, joints, torque) -> jaxlie.SE3:
-    """base←flange: `robtraj.model.flange_poses` for static poses (no backlash), with the
-    gravity torques of the nominal link-mass model precomputed (they do not depend on
-    the parameters; `flange_poses` recomputes them inside every Jacobian column)."""
-    robot = ur10()
-    dh_delta, tilt = dh_corrections(robot, eff)
-    q = _joint_angles(eff, joints, torque)
-    return jax.vmap(lambda qq: forward_kinematics(robot, qq, dh_delta, tilt))(q)
-
-
-def _joint_angles(eff: Effects, joints, torque) -> Array:
-    """`(N, joints)` angles the links take: the log plus offsets, gravity deflection, the
-    harmonics and the maps (`robtraj.model.effective_joints` for static poses)."""
-    return (
-        joints
-        + eff.joint_offset
-        + eff.joint_compliance * torque
-        + _harmonic_error(eff, joints)
-        + _map_error(eff, joints)
-    )
-
-
-def _harmonic_error(eff: Effects, joints) -> Array:
-    """`(N, joints)` joint-angle error of the dictionary's harmonics in `eff` [rad]."""
-    c = jnp.stack([eff.terms[t] for t in HARMONIC_TERMS]).reshape(joints.shape[-1], -1)
-    return jnp.einsum("njk,jk->nj", _harmonics(joints), c)
-
-
-def _map_error(eff: Effects, joints) -> Array:
-    """`(N, joints)` joint-angle error of the maps in `eff` [rad], from each angle's two
-    active knots (zero without maps)."""
-    if MAP_TERMS[0] not in eff.terms:
-        return jnp.zeros_like(joints)
-    c = jnp.stack([eff.terms[t] for t in MAP_TERMS])  # (joints, knots)
-    idx, w = map_active(joints, MAP_KNOTS)
-    return jnp.sum(w * c[jnp.arange(joints.shape[-1])[None, :, None], idx], -1)
-
-
-def _predict(theta, z0, x0, joints, drift, torque):
-    """camera←probe predicted `(N, 7)` for the parameter vector `theta`."""
-    eff = _effects_of(theta)
-    z = jaxlie.SE3(z0) @ jaxlie.SE3.exp(theta[:6])
-    x = jaxlie.SE3(x0) @ jaxlie.SE3.exp(theta[6:12])
-    flange = _flange(eff, joints, torque)
-    cam = camera_from_base_at(z, eff, drift)
-    pose = cam @ flange @ x
-    pos = (1.0 + eff.tracker_scale) * pose.translation()
-    return jnp.concatenate([pose.rotation().wxyz, pos], -1)
-
-
-def _raw_residual(theta, z0, x0, joints, drift, torque, measured):
-    """`(N, 6)`: position error [m] and rotation vector [rad] of measured⁻¹·predicted."""
-    pred = _predict(theta, z0, x0, joints, drift, torque)
-    dp = pred[:, 4:] - measured[:, 4:]
-    dr = jax.vmap(lambda a, b: (jaxlie.SO3(a).inverse() @ jaxlie.SO3(b)).log())(
-        measured[:, :4], pred[:, :4]
-    )
-    return jnp.concatenate([dp, dr], -1)
-
-
-_predict_jit = jax.jit(lambda *a: _predict(*a))
-
-#: θ entries that act on the flange pose through the kinematics, and the rest
-_KINEMATIC = np.r_[
-    _SL["joint_offset"],
-    _SL["link_length"],
-    _SL["link_twist"],
-    _SL["joint_compliance"],
-    _SL["joint_harmonic"],
-]
-_GLOBAL = np.setdiff1d(np.arange(N_PARAMS), _KINEMATIC)
-
-
-def _jacobian(theta, z0, x0, joints, drift, torque, measured):
-    """The residual `(N, 6)` and its Jacobian `(N, 6, N_PARAMS)` in the entries before the
-    maps by the chain rule: the kinematic columns are the flange twists of
-    `robtraj.model.flange_jacobian` carried through the residual's derivative in a
-    flange twist (6 tangents per pose), the others forward-mode (16 tangents) — not
-    forward-mode through the kinematics. A map's column is its joint's offset column
-    times the hat value (`_pose_normal`)."""
-    robot = ur10()
-    eff = _effects_of(theta)
-    q = _joint_angles(eff, joints, torque)
-    dh_delta, tilt = dh_corrections(robot, eff)
-    flange, g = jax.vmap(lambda qq: flange_jacobian(robot, qq, dh_delta, tilt))(q)
-    # (N, 6, joints, 5) → θ columns; a joint offset moves θ, a compliance τ·θ, a
-    # harmonic sin(h·q)·θ or cos(h·q)·θ
-    n = q.shape[0]
-    kin = jnp.concatenate(
-        [
-            g[..., 0],
-            g[..., 1:3].reshape(n, 6, -1),
-            g[..., 3:5].reshape(n, 6, -1),
-            g[..., 0] * torque[:, None, :],
-            (g[..., 0, None] * _harmonics(joints)[:, None]).reshape(n, 6, -1),
-        ],
-        -1,
-    )
-
-    def residual(theta_global, xi):
-        t = theta.at[_GLOBAL].set(theta_global)
-        e = _effects_of(t)
-        f = jax.vmap(lambda a, b: (jaxlie.SE3.exp(a) @ jaxlie.SE3(b)).wxyz_xyz)(xi, flange.wxyz_xyz)
-        shift = drift[:, None] * e.thermal_drift[None, :]
-        return _rigid_residual(t[:12], z0, x0, f, shift, e.tracker_scale, measured)
-
-    xi0 = jnp.zeros((n, 6), theta.dtype)
-    tg = theta[_GLOBAL]
-    r = residual(tg, xi0)
-    j_global = jax.jacfwd(residual)(tg, xi0)  # (N, 6, 16)
-    # each pose's residual depends on its own twist only: 6 tangents, all poses at once
-    j_xi = jax.vmap(
-        lambda dx: jax.jvp(lambda e: residual(tg, e), (xi0,), (jnp.broadcast_to(dx, (n, 6)),))[1],
-        out_axes=-1,
-    )(jnp.eye(6, dtype=theta.dtype))  # (N, 6, 6)
-    j = jnp.zeros((n, 6, N_PARAMS), r.dtype)
-    j = j.at[..., _GLOBAL].set(j_global)
-    j = j.at[..., _KINEMATIC].set(jnp.einsum("nrk,nkp->nrp", j_xi, kin))
-    return r, j
-
-
-# ----------------------------------------------------------------------------- errors
 
 
 def pose_errors(predicted: np.ndarray, measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -427,8 +218,11 @@ class PoseFit:
 
     def predict(self, series: PoseSeries) -> np.ndarray:
         """camera←probe `(N, 7)` (``wxyz_xyz``, m) this fit predicts for `series`' poses."""
-        args = (self.theta, self.z0, self.x0, series.joints, series.drift_variable, series.torque)
-        return np.asarray(_predict_jit(*(jnp.asarray(a) for a in args)))
+        w = np.ones((series.n, 6))
+        data = pose_data(
+            self.z0, self.x0, series.joints, series.drift_variable, series.measured, w, False
+        )
+        return np.asarray(predict_probe_poses(jnp.asarray(self.theta), data))
 
     def effect_values(self) -> dict[str, list]:
         out = {}
@@ -475,52 +269,6 @@ class PoseFit:
         return error_summary(self.position_error, self.angle_error, noise_m)
 
 
-def parse_effect_spec(spec: str) -> tuple[str, list[int] | None]:
-    """``"joint_compliance"`` → all its parameters; ``"joint_compliance[1,2]"`` → only
-    those elements (e.g. the joints that carry the arm's weight); a dictionary term
-    (``joint2_harmonic1``, ``joint2_map``) → its entries of the harmonic or map block;
-    ``"joint_map"`` → every joint's map."""
-    if spec in HARMONIC_TERMS:
-        k = HARMONIC_TERMS.index(spec)
-        return "joint_harmonic", [2 * k, 2 * k + 1]
-    if spec in MAP_TERMS:
-        k = MAP_TERMS.index(spec)
-        return "joint_map", list(range(k * MAP_KNOTS, (k + 1) * MAP_KNOTS))
-    name, _, rest = spec.partition("[")
-    if name not in _SL:
-        raise UserError(
-            f"effect {name!r} is not fitted at pose level (choose from {_EFFECT_ORDER}, "
-            "a joint harmonic of the dictionary, e.g. joint2_harmonic1, or a joint angle "
-            "error map, e.g. joint2_map)"
-        )
-    if not rest:
-        return name, None
-    try:
-        idx = [int(v) for v in rest.rstrip("]").split(",")]
-    except ValueError:
-        raise UserError(f"bad effect {spec!r}: expected NAME[i,j,...]") from None
-    size = _SL[name].stop - _SL[name].start
-    if any(i < 0 or i >= size for i in idx):
-        raise UserError(f"bad effect {spec!r}: indices must lie in 0..{size - 1}")
-    return name, idx
-
-
-def uses_maps(estimate: Sequence[str]) -> bool:
-    """Whether the effects `estimate` include a joint angle error map."""
-    return any(parse_effect_spec(e)[0] == "joint_map" for e in estimate)
-
-
-def map_terms_of(estimate: Sequence[str]) -> tuple[str, ...]:
-    """The map terms (``joint2_map``) among the effects `estimate`."""
-    out = set()
-    for e in estimate:
-        name, idx = parse_effect_spec(e)
-        if name == "joint_map":
-            joints = range(6) if idx is None else {i // MAP_KNOTS for i in idx}
-            out.update(MAP_TERMS[j] for j in joints)
-    return tuple(t for t in MAP_TERMS if t in out)
-
-
 def map_knots_supported(series: PoseSeries) -> np.ndarray:
     """`(N_MAP,)` bool: the knots of every joint's map near the series' angles
     (`robtraj.model.map_support`); the others are held at zero, their prior mean."""
@@ -545,26 +293,10 @@ def _free_mask(
             free[sl] = True
         else:
             free[sl.start + np.asarray(idx)] = True
-    free[_REDUNDANT] = False
+    free[POSE_REDUNDANT] = False
     if maps and series is not None:
         free[_SL["joint_map"]] &= map_knots_supported(series)
     return free
-
-
-def map_prior_of(
-    estimate: Sequence[str], map_prior: tuple[float, float] | None = None
-) -> GaussianPrior:
-    """The Gaussian prior of the maps among `estimate` (`robtraj.estimate.term_prior`):
-    each term's own precision, or that of `map_prior` = (σ_f, ℓ) [rad]."""
-    terms = map_terms_of(estimate)
-    if not terms:
-        return no_prior()
-    blocks = [(t, _SL["joint_map"].start + MAP_TERMS.index(t) * MAP_KNOTS) for t in terms]
-    precisions = None
-    if map_prior is not None:
-        lam = map_precision(MAP_KNOTS, *map_prior)
-        precisions = {t: lam for t in terms}
-    return term_prior(blocks, precisions)
 
 
 def _weights(series: PoseSeries, block_sigma: tuple[float, float]) -> np.ndarray:
@@ -591,122 +323,12 @@ def _block_sigma(r: np.ndarray, series: PoseSeries) -> tuple[float, float]:
     return out[0], out[1]
 
 
-@jax.jit
-def _effect_part(theta, joints, drift, torque):
-    """What the effects contribute, for the rigid-only fast path: base←flange
-    (``wxyz_xyz``), the thermal shift of camera←base `(N, 3)` and the scale."""
-    eff = _effects_of(theta)
-    flange = _flange(eff, joints, torque).wxyz_xyz
-    return flange, drift[:, None] * eff.thermal_drift[None, :], eff.tracker_scale
-
-
-def _rigid_residual(t12, z0, x0, flange, shift, scale, measured):
-    z = jaxlie.SE3(z0) @ jaxlie.SE3.exp(t12[:6])
-    x = jaxlie.SE3(x0) @ jaxlie.SE3.exp(t12[6:])
-    pose = jax.vmap(lambda f: z @ jaxlie.SE3(f) @ x)(flange)
-    pos = (1.0 + scale) * (pose.translation() + shift)
-    dp = pos - measured[:, 4:]
-    dr = jax.vmap(lambda a, b: (jaxlie.SO3(a).inverse() @ jaxlie.SO3(b)).log())(
-        measured[:, :4], pose.rotation().wxyz
-    )
-    return jnp.concatenate([dp, dr], -1)
-
-
-class PoseData(eqx.Module):
-    """One series as the engine's ``data``: start transforms z0, x0 (``wxyz_xyz``),
-    joints, drift variable, gravity torques, measured poses, ``sqrt(w)`` `(N, 6)`, the
-    maps' active knots at the joints (`_pose_normal.map_index`) and the Gaussian prior
-    of the estimated terms that carry one. `rigid_only`: only the 12 rigid parameters
-    are differentiated (nominal fits, cross-series refits); the effects are evaluated
-    once."""
-
-    z0: Any
-    x0: Any
-    joints: Any
-    drift: Any
-    torque: Any
-    measured: Any
-    sqrt_w: Any
-    map_index: Any
-    map_weight: Any
-    prior: GaussianPrior
-    rigid_only: bool = eqx.field(static=True, default=False)
-
-
-def _pose_residual(theta, d: PoseData):
-    """`(N, 6)` unweighted residual (position [m], rotation vector [rad])."""
-    if d.rigid_only:
-        return _rigid_residual(
-            theta[:12], d.z0, d.x0, *_effect_part(theta, d.joints, d.drift, d.torque), d.measured
-        )
-    return _raw_residual(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
-
-
-_pose_residual_jit = eqx.filter_jit(_pose_residual)
-
-
-@composed
-def pose_normal(theta, d: PoseData):
-    """``(H, b, cost)`` of the weighted pose residuals plus the prior (`robtraj.estimate.
-    solve`): the dense columns' Jacobian of a few thousand poses is small enough to
-    form, the maps' block is accumulated from their active knots (`_pose_normal`). The
-    Jacobian and the normal equations are two kernels (`composed`): `group_terms`
-    shares the first."""
-    if d.rigid_only:
-        return _rigid_normal(theta, d)
-    everyone = jnp.arange(d.joints.shape[0], dtype=jnp.int32)[None]
-    h, b, c, _, _ = group_terms(theta, d, everyone)
-    return _with_prior(h[0], b[0], c[0], theta, d.prior)
-
-
-@jax.jit
-def _rigid_normal(theta, d: PoseData):
-    """`pose_normal` where only the 12 rigid parameters are differentiated."""
-    p = theta.shape[0]
-    part = _effect_part(theta, d.joints, d.drift, d.torque)
-
-    def r12(t12):
-        res = _rigid_residual(t12, d.z0, d.x0, *part, d.measured)
-        return (d.sqrt_w * res).reshape(-1)
-
-    r = r12(theta[:12])
-    j = jax.jacfwd(r12)(theta[:12])
-    h = jnp.zeros((p, p), r.dtype).at[:12, :12].set(j.T @ j)
-    b = jnp.zeros(p, r.dtype).at[:12].set(-(j.T @ r))
-    return d.prior.add_to(h, b, r @ r, theta[d.prior.index])
-
-
-@jax.jit
-def _with_prior(h, b, c, theta, prior: GaussianPrior):
-    return prior.add_to(h, b, c, theta[prior.index])
-
-
-_jacobian_jit = jax.jit(_jacobian)
-_normal_terms_jit = jax.jit(normal_terms, static_argnames=("offset", "n_map"))
-
-
-def group_terms(theta, d: PoseData, members):
-    """Per group of poses (`members` `(G, M)`, `_pose_normal.group_members`): ``JᵀWJ`` `(G, P, P)`,
-    ``−JᵀWr`` `(G, P)`, ``rᵀWr`` `(G,)`; and the unweighted residual `(N, 6)` and dense
-    Jacobian `(N, 6, N_PARAMS)` (the maps' columns follow from it: `_pose_normal`)."""
-    r, j = _jacobian_jit(theta, d.z0, d.x0, d.joints, d.drift, d.torque, d.measured)
-    h, b, c = _normal_terms_jit(
-        r,
-        j,
-        d.sqrt_w,
-        offset=_OFFSET,
-        index=d.map_index,
-        weight=d.map_weight,
-        n_map=theta.shape[0] - N_PARAMS,
-        members=members,
-    )
-    return h, b, c, r, j
-
-
 def linearise(theta: np.ndarray, data: PoseData, label: np.ndarray) -> Linearisation:
     """The linearisation of the pose model of `data` at `theta`, per region `label`."""
     members = jnp.asarray(group_members(label))
-    h_g, b_g, c_g, r, j = (np.asarray(a) for a in group_terms(jnp.asarray(theta), data, members))
+    h_g, b_g, c_g, r, j = (
+        np.asarray(a) for a in pose_group_terms(jnp.asarray(theta), data, members)
+    )
     return Linearisation(
         theta=np.asarray(theta, float),
         label=np.asarray(label),
@@ -719,16 +341,8 @@ def linearise(theta: np.ndarray, data: PoseData, label: np.ndarray) -> Linearisa
         j=j,
         map_index=np.asarray(data.map_index),
         map_weight=np.asarray(data.map_weight),
-        offset=_OFFSET,
+        offset=POSE_MAP_OFFSET,
     )
-
-
-@functools.cache
-def zero_map_prior() -> GaussianPrior:
-    """No prior, in the layout of the prior of every map (zero precision): normal
-    equations without a prior share the compilation of those of a fit of the maps."""
-    pr = map_prior_of(MAP_TERMS)
-    return GaussianPrior(pr.index, jnp.zeros_like(pr.precision))
 
 
 def structure_normal(theta, z0, x0, series: PoseSeries, w: np.ndarray) -> np.ndarray:
@@ -745,22 +359,18 @@ def structure_normal(theta, z0, x0, series: PoseSeries, w: np.ndarray) -> np.nda
 def _data(
     z0, x0, series: PoseSeries, w: np.ndarray, rigid_only: bool, prior: GaussianPrior | None = None
 ) -> PoseData:
-    idx, wt = map_index(jnp.asarray(series.joints), MAP_KNOTS)
-    return PoseData(
-        *(
-            jnp.asarray(a)
-            for a in (z0, x0, series.joints, series.drift_variable, series.torque, series.measured)
-        ),
-        sqrt_w=jnp.asarray(np.sqrt(w)),
-        map_index=idx,
-        map_weight=wt,
-        prior=no_prior() if prior is None else prior,
-        rigid_only=rigid_only,
+    return pose_data(
+        z0,
+        x0,
+        series.joints,
+        series.drift_variable,
+        series.measured,
+        w,
+        rigid_only,
+        prior,
     )
 
 
-#: initial damping of a fit with a prior (`robtraj.estimate.solve`): the maps are linear
-#: in their knots and the first Gauss–Newton step lands; at Optimistix's default the
 #: knots the prior determines most took ~10 steps
 PRIOR_DAMPING = 1e-4
 
@@ -798,7 +408,7 @@ def fit_poses(
 ) -> PoseFit:
     """Calibrate `series` at pose level (see the module docstring).
 
-    - `estimate`: effects to fit besides the rigid transforms (`_EFFECT_ORDER`, the
+    - `estimate`: effects to fit besides the rigid transforms (`robtraj.estimate.POSE_EFFECTS`, the
       dictionary's joint harmonics and joint angle error maps; ``joint_map``: every
       joint's map).
     - `init`: start from this fit of the same series (its θ and start transforms).
@@ -848,7 +458,7 @@ def fit_poses(
             _weights(series, (1e-3, 1e-3)),
         )
         theta = sol0.theta
-        block_sigma = _block_sigma(np.asarray(_pose_residual_jit(jnp.asarray(theta), d0)), series)
+        block_sigma = _block_sigma(np.asarray(pose_residual(jnp.asarray(theta), d0)), series)
     w = _weights(series, block_sigma)
     if np.any(free[12:]):
         # identifiability of the model's structure (`structure_normal`)
@@ -886,9 +496,7 @@ def fit_poses(
             "model_error": field.as_dict(),
         }
 
-    pred = np.asarray(
-        _predict_jit(jnp.asarray(theta), *(data.z0, data.x0, data.joints, data.drift, data.torque))
-    )
+    pred = np.asarray(predict_probe_poses(jnp.asarray(theta), data))
     pos, ang = pose_errors(pred, series.measured)
     prior_entries = np.zeros(p, bool)
     prior_entries[np.asarray(data.prior.index)] = True

@@ -53,6 +53,7 @@ from . import _calib_frames
 from ._calib_data import CalibrationData
 from ._calib_frames import TrackerFrames, Weights
 from ._prior import GaussianPrior, no_prior
+from ._probe_error import probe_pose_error
 from ._solve import composed
 
 #: effects that change the flange pose (the forward kinematics must be re-run per step)
@@ -97,6 +98,9 @@ class BundleProblem(eqx.Module):
     #: on the rigid path, the columns of the LED-level effects in `free` (at zero) are
     #: taken too (the score test's normal equations); a fit that holds them skips them
     led_columns: bool = eqx.field(static=True, default=False)
+    #: the frames are the log's entries, one static pose each (6-DOF pose series): the
+    #: joints are read, not interpolated, and no clock offset applies
+    at_log: bool = eqx.field(static=True, default=False)
 
 
 def is_kinematic(name: str) -> bool:
@@ -140,7 +144,7 @@ def tool_poses(
     if base_from_flange is not None:
         pass
     elif problem.kinematic:
-        q = interpolate_joints(problem.log_time, problem.joints, frames.time + eff.time_offset)
+        q = _logged_joints(problem, frames.time + eff.time_offset)
         base_from_flange = flange_poses(problem.robot, eff, q, frames.direction, frames.moving)
     else:
         base_from_flange = jaxlie.SE3(frames.base_from_flange)
@@ -152,6 +156,14 @@ def predict(g: Array, p: Array, problem: BundleProblem, frames: Frames) -> Array
     """Predicted LED positions `(frames, leds, 3)` [m] in the camera frame."""
     tool, eff = tool_poses(g, problem, frames)
     return led_positions(tool, eff, p, problem.normals)
+
+
+def _logged_joints(problem: BundleProblem, t: Array) -> Array:
+    """The logged joint angles at robot-clock times `t` (`problem.at_log`: the log's own
+    entries)."""
+    if problem.at_log:
+        return problem.joints
+    return interpolate_joints(problem.log_time, problem.joints, t)
 
 
 def _tool_jacobian(g, problem, frames) -> tuple[jaxlie.SE3, Array]:
@@ -189,7 +201,7 @@ def _kinematic_twists(g, problem: BundleProblem, frames: Frames):
 
     def joints(t, compliance):
         e = eqx.tree_at(lambda x: x.joint_compliance, eff, compliance)
-        q = interpolate_joints(problem.log_time, problem.joints, t)
+        q = _logged_joints(problem, t)
         return jax.vmap(lambda a, d, m: effective_joints(robot, e, a, d, m))(
             q, frames.direction, frames.moving
         )
@@ -244,7 +256,7 @@ def _effect_columns(g, problem: BundleProblem, frames: Frames, tool0, ad, kinema
     if not joint_terms:
         return jnp.concatenate(cols, -1)
     # every joint term's columns from one feature array, then put in the order of g
-    q_log = interpolate_joints(problem.log_time, problem.joints, t_robot)
+    q_log = _logged_joints(problem, t_robot)
     phi = jax.vmap(lambda a, s, tau: joint_term_features(joint_terms, a, s, tau))(
         q_log, frames.moving, torque
     )  # (C, k)
@@ -699,22 +711,66 @@ def probe_observations(probe, data: CalibrationData, tau: float) -> ProbeObserva
     return ProbeObservations(frames, jnp.asarray(probed))
 
 
+def probe_residual(
+    g: Array, problem: BundleProblem, frames: Frames, probed: Float[Array, "n 7"]
+) -> Float[Array, "n 6"]:
+    """The 6-DOF residual `(n, 6)` of camera←tool poses `probed` (``wxyz_xyz``) measured
+    at `frames`: `probe_pose_error` of the model's tool pose (the tracker's scale applied
+    to its position)."""
+    tool, eff = tool_poses(g, problem, frames)
+    return probe_pose_error(
+        tool.rotation().wxyz, (1.0 + eff.tracker_scale) * tool.translation(), probed
+    )
+
+
+def probe_jacobian(
+    g: Array, problem: BundleProblem, frames: Frames, probed: Float[Array, "n 7"]
+) -> tuple[Float[Array, "n 6"], Float[Array, "n 6 q"]]:
+    """`probe_residual` and its Jacobian in g `(n, 6, q)`: the residual's derivative in
+    the tool pose's tangent (6 forward-mode tangents, every pose at once) times the
+    tool's closed-form Jacobian (`_tool_jacobian`), and the tracker scale's column."""
+    tool0, j_tool = _tool_jacobian(g, problem, frames)
+    _, _, eff = _split(g, problem)
+
+    def err(xi, scale):
+        t = jaxlie.SE3(
+            jax.vmap(lambda a, b: (jaxlie.SE3(a) @ jaxlie.SE3.exp(b)).wxyz_xyz)(tool0.wxyz_xyz, xi)
+        )
+        return probe_pose_error(t.rotation().wxyz, (1.0 + scale) * t.translation(), probed)
+
+    xi0 = jnp.zeros((probed.shape[0], 6), g.dtype)
+    scale = eff.tracker_scale
+    r = err(xi0, scale)
+    j_xi = jax.vmap(
+        lambda dx: jax.jvp(lambda e: err(e, scale), (xi0,), (jnp.broadcast_to(dx, xi0.shape),))[1],
+        out_axes=-1,
+    )(jnp.eye(6, dtype=g.dtype))  # (n, 6, 6)
+    j = jnp.einsum("nrk,nkq->nrq", j_xi, j_tool)
+    at = _effect_index(problem, "tracker_scale")
+    if at is not None and at < g.shape[0]:
+        d_scale = jax.jvp(lambda s: err(xi0, s), (scale,), (jnp.ones_like(scale),))[1]
+        j = j.at[..., at].set(d_scale)
+    return r, j
+
+
+def _effect_index(problem: BundleProblem, name: str) -> int | None:
+    """The first entry of effect `name` in g (None where it is not in the problem)."""
+    i = 12
+    for n, size in zip(problem.free, effect_sizes(problem.effects, problem.free)):
+        if n == name:
+            return i
+        i += size
+    return None
+
+
 def _probe_terms(g, problem: BundleProblem, obs: ProbeObservations):
-    """Normal equations of the probe-pose residuals ``−W·log(probed⁻¹ · predicted)``
-    (forward kinematics re-run: the probe times are not tracker frames)."""
+    """Normal equations of the probe poses' residuals (`probe_jacobian`), weighted by
+    `PROBE_SIGMA` (forward kinematics re-run: the probe times are not tracker frames)."""
     w = jnp.concatenate([jnp.full(3, 1 / PROBE_SIGMA[0]), jnp.full(3, 1 / PROBE_SIGMA[1])])
     kin = dataclasses.replace(problem, kinematic=True)
-
-    def f(gg):
-        tool, _ = tool_poses(gg, kin, obs.frames)
-        err = jax.vmap(lambda a, b: (jaxlie.SE3(a).inverse() @ jaxlie.SE3(b)).log())(
-            obs.probed, tool.wxyz_xyz
-        )
-        return (w * err).reshape(-1)
-
-    r = -f(g)
-    j = jax.jacfwd(f)(g)
-    jp, rp = j.reshape(-1, 6, j.shape[-1]), r.reshape(-1, 6)
+    r6, j6 = probe_jacobian(g, kin, obs.frames, obs.probed)
+    jp, rp = w[:, None] * j6, -(w * r6)
+    j, r = jp.reshape(-1, jp.shape[-1]), rp.reshape(-1)
     per_pose = (jnp.einsum("nkq,nkr->nqr", jp, jp), jnp.einsum("nkq,nk->nq", jp, rp))
     return j.T @ j, j.T @ r, jnp.sum(r * r), per_pose
 

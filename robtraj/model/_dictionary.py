@@ -383,13 +383,19 @@ def joint_term_joints(names: Sequence[str]) -> np.ndarray:
 
 
 def joint_term_error(terms: dict, q: jnp.ndarray, s: jnp.ndarray, tau: jnp.ndarray) -> jnp.ndarray:
-    """Sum of the joint terms in `terms` {name: coefficients} for one frame `(joints,)` [rad]."""
-    names = [t.name for t in _joint_terms(list(terms))]
+    """Sum of the joint terms in `terms` {name: coefficients} for one frame `(joints,)` [rad]
+    (a map from the two knots around its joint's angle, not from its every feature)."""
+    ts = _joint_terms(list(terms))
+    out = jnp.zeros_like(q)
+    for t in (t for t in ts if t.knots):
+        idx, w = _joint_map.active(q[t.joint], t.knots)
+        out = out.at[t.joint].add(jnp.sum(w * jnp.asarray(terms[t.name], q.dtype)[idx]))
+    names = [t.name for t in ts if not t.knots]
     if not names:
-        return jnp.zeros_like(q)
+        return out
     c = jnp.concatenate([jnp.asarray(terms[n], q.dtype) for n in names])
     onehot = np.arange(q.shape[0])[None, :] == joint_term_joints(names)[:, None]
-    return (joint_term_features(names, q, s, tau) * c) @ jnp.asarray(onehot, q.dtype)
+    return out + (joint_term_features(names, q, s, tau) * c) @ jnp.asarray(onehot, q.dtype)
 
 
 def led_term_offset(terms: dict, y, n, theta):

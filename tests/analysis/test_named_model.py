@@ -20,6 +20,7 @@ from robtraj.analysis._named_model import (
 from robtraj.analysis.prediction import predicted_tool_poses
 from robtraj.calibration_file import parse_calibration
 from robtraj.cli import main
+from robtraj.estimate import _pose_problem as pp
 from robtraj.recording import read_recording
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "cli"))
@@ -52,7 +53,7 @@ def test_a_pose_fit_as_calibration_predicts_what_the_fit_predicts(tmp_path):
     series = rd.series_from_recording(rec, "B")
     named = ("joint_offset", "link_length", "joint2_map", "joint_compliance[1,2]", "thermal_drift")
     fit = pf.fit_poses(series, estimate=named)
-    assert fit.converged and np.any(fit.theta[pf._slices()["thermal_drift"]] != 0)
+    assert fit.converged and np.any(fit.theta[pp.pose_slices()["thermal_drift"]] != 0)
     calib = pose_calibration(fit, rec, series, named=named, noise_m=18e-6, source=str(path))
     doc = json.loads(json.dumps(calib.to_json()).replace("NaN", "null"))
     back = parse_calibration(doc)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from robtraj.analysis import _pose_cv as cv, _pose_fit as pf, real_data as rd
+from robtraj.estimate import _pose_problem as pp
 from robtraj.sim import POSE_NOISE, UR10_RANGES, PeriodicJointError, static_pose_series
 
 NOISE = POSE_NOISE
@@ -64,9 +65,8 @@ def test_pose_normal_equations_with_maps_are_those_of_the_pure_residual():
     z0, x0 = s.start
     d = pf._data(z0, x0, s, w, False, prior)
     h, b, c = jax.jit(pf.pose_normal)(jnp.asarray(theta), d)
-    args = [jnp.asarray(a) for a in (z0, x0, s.joints, s.drift_variable, s.torque, s.measured)]
-    r = np.asarray(pf._raw_residual(jnp.asarray(theta), *args))
-    j = np.asarray(jax.jit(jax.jacfwd(pf._raw_residual))(jnp.asarray(theta), *args))
+    r = np.asarray(pp._raw_residual(jnp.asarray(theta), d))
+    j = np.asarray(jax.jit(jax.jacfwd(pp._raw_residual))(jnp.asarray(theta), d))
     sw = np.sqrt(w)
     rw, jw = (sw * r).reshape(-1), (sw[..., None] * j).reshape(-1, p)
     lam = prior.dense(p)
@@ -97,7 +97,7 @@ def _linearisation_point(n, seed, rng_seed):
 def test_the_whitened_jacobian_rows_are_those_of_the_pure_residual():
     """`jacobian_rows` (per component, sparse, maps' columns from the active knots)
     against ``jax.jacfwd`` of `_raw_residual`, whitened, on a subset of columns."""
-    from robtraj.analysis._pose_normal import jacobian_rows
+    from robtraj.estimate import jacobian_rows
 
     s, p, rng, theta, w = _linearisation_point(40, 2, 6)
     z0, x0 = s.start
@@ -107,8 +107,7 @@ def test_the_whitened_jacobian_rows_are_those_of_the_pure_residual():
     rows = jacobian_rows(
         lin.j, np.sqrt(w), lin.offset, lin.map_index, lin.map_weight, p - pf.N_PARAMS, cols
     )
-    args = [jnp.asarray(a) for a in (z0, x0, s.joints, s.drift_variable, s.torque, s.measured)]
-    j = np.asarray(jax.jit(jax.jacfwd(pf._raw_residual))(jnp.asarray(theta), *args))
+    j = np.asarray(jax.jit(jax.jacfwd(pp._raw_residual))(jnp.asarray(theta), d))
     want = np.sqrt(w)[..., None] * j[:, :, cols]
     got = np.stack([r.toarray() for r in rows], 1)
     np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from robtraj.analysis import _pose_fit as pf
+from robtraj.estimate import _pose_problem as pp
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ipa-robot-accuracy"
 pytestmark = pytest.mark.skipif(
@@ -64,7 +65,7 @@ def test_calibration_reports_and_fixes_the_ur10_degeneracies(workflow):
         # d6, a6 ≡ probe offset; d2 + d3 + d4 (parallel axes 2–4) only as a sum
         assert "camera_from_base.rz" in dropped["joint_offset[0]"]
         assert "camera_from_base.tz" in dropped["link_length[0].d"]
-        assert "flange_from_probe.rz" in dropped["joint_offset[5]"]
+        assert "flange_from_tool.rz" in dropped["joint_offset[5]"]
         for p in ("link_length[5].d", "link_length[5].a", "link_length[1].d", "link_length[2].d"):
             assert p in dropped
         assert len(dropped) == 7
@@ -284,17 +285,9 @@ def test_pose_model_is_the_package_forward_model(series):
     theta = rng.normal(0, 1e-3, pf.n_params(True))
     theta[pf._SL["joint_compliance"]] = rng.normal(0, 1e-5, 6)
     z0, x0 = s.start
-    pred = np.asarray(
-        pf._predict_jit(
-            jnp.asarray(theta),
-            jnp.asarray(z0),
-            jnp.asarray(x0),
-            jnp.asarray(s.joints),
-            jnp.asarray(s.drift_variable),
-            jnp.asarray(s.torque),
-        )
-    )
-    eff = pf._effects_of(jnp.asarray(theta))
+    w = np.ones((s.n, 6))
+    pred = np.asarray(pp.predict_probe_poses(jnp.asarray(theta), pf._data(z0, x0, s, w, False)))
+    eff = pp.pose_effects(jnp.asarray(theta))
     q = jnp.asarray(s.joints)
     fl = jax.jit(flange_poses)(ur10(), eff, q, jnp.zeros_like(q))
     z = jaxlie.SE3(jnp.asarray(z0)) @ jaxlie.SE3.exp(jnp.asarray(theta[:6]))
@@ -305,15 +298,14 @@ def test_pose_model_is_the_package_forward_model(series):
     pe, ae = rd.pose_errors(pred, np.asarray(ref.wxyz_xyz))
     assert np.max(ae) < 1e-10
     # the rigid-only fast path (nominal fits, cross-series refits) is the same residual
-    w = np.ones((s.n, 6))
-    full = pf._pose_residual_jit(jnp.asarray(theta), pf._data(z0, x0, s, w, False))
-    fast = pf._pose_residual_jit(jnp.asarray(theta), pf._data(z0, x0, s, w, True))
+    full = pp.pose_residual(jnp.asarray(theta), pf._data(z0, x0, s, w, False))
+    fast = pp.pose_residual(jnp.asarray(theta), pf._data(z0, x0, s, w, True))
     np.testing.assert_allclose(np.asarray(fast), np.asarray(full), atol=1e-12)
     # the chain-rule Jacobian (closed-form flange twists) equals forward mode through
     # the whole residual, every effect included
-    args = [jnp.asarray(a) for a in (z0, x0, s.joints, s.drift_variable, s.torque, s.measured)]
-    _, jac = jax.jit(pf._jacobian)(jnp.asarray(theta), *args)
-    ref = jax.jit(jax.jacfwd(pf._raw_residual))(jnp.asarray(theta), *args)
+    d = pf._data(z0, x0, s, w, False)
+    _, jac = jax.jit(pp._jacobian)(jnp.asarray(theta), d)
+    ref = jax.jit(jax.jacfwd(pp._raw_residual))(jnp.asarray(theta), d)
     scale = np.abs(np.asarray(ref)).max((0, 1))
     scale = np.where(scale > 0, scale, 1.0)  # compliance of joints without gravity torque
     ref = np.asarray(ref)[..., : pf.N_PARAMS]  # the maps' columns: test_pose_maps.py
