@@ -52,6 +52,7 @@ from ..model import (
 from . import _calib_frames
 from ._calib_data import CalibrationData
 from ._calib_frames import TrackerFrames, Weights
+from ._pose_normal import normal_terms
 from ._prior import GaussianPrior, no_prior
 from ._probe_error import probe_pose_error
 from ._solve import composed
@@ -765,14 +766,16 @@ def _effect_index(problem: BundleProblem, name: str) -> int | None:
 
 def _probe_terms(g, problem: BundleProblem, obs: ProbeObservations):
     """Normal equations of the probe poses' residuals (`probe_jacobian`), weighted by
-    `PROBE_SIGMA` (forward kinematics re-run: the probe times are not tracker frames)."""
-    w = jnp.concatenate([jnp.full(3, 1 / PROBE_SIGMA[0]), jnp.full(3, 1 / PROBE_SIGMA[1])])
+    `PROBE_SIGMA` (forward kinematics re-run: the probe times are not tracker frames):
+    the totals and each pose's (`normal_terms`, a group per pose)."""
     kin = dataclasses.replace(problem, kinematic=True)
-    r6, j6 = probe_jacobian(g, kin, obs.frames, obs.probed)
-    jp, rp = w[:, None] * j6, -(w * r6)
-    j, r = jp.reshape(-1, jp.shape[-1]), rp.reshape(-1)
-    per_pose = (jnp.einsum("nkq,nkr->nqr", jp, jp), jnp.einsum("nkq,nk->nq", jp, rp))
-    return j.T @ j, j.T @ r, jnp.sum(r * r), per_pose
+    r, j = probe_jacobian(g, kin, obs.frames, obs.probed)
+    sigma = jnp.asarray(np.repeat(PROBE_SIGMA, 3), r.dtype)
+    each = jnp.arange(r.shape[0], dtype=jnp.int32)[:, None]
+    h, b, c = normal_terms(
+        r, j, jnp.broadcast_to(1.0 / sigma, r.shape), (0, 0), None, None, 0, each
+    )
+    return h.sum(0), b.sum(0), c.sum(), (h, b)
 
 
 class BundleData(eqx.Module):

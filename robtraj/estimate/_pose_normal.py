@@ -1,5 +1,5 @@
-"""Normal equations of the pose-level fit, per group of poses, with the joint angle error
-maps' block accumulated from their two active knots.
+"""Normal equations of 6-DOF pose observations, per group of poses, with the joint angle
+error maps' block accumulated from their two active knots.
 
 The residual of pose n is `(6,)` (position [m], rotation vector [rad]); its Jacobian has
 dense columns for the rigid transforms and every effect but the maps (`(N, 6, P_d)`), and
@@ -49,8 +49,8 @@ def normal_terms(
     j: Float[Array, "n 6 pd"],
     sqrt_w: Float[Array, "n 6"],
     offset: tuple[int, int],
-    index: Int[Array, "n joints 2"],
-    weight: Float[Array, "n joints 2"],
+    index: Int[Array, "n joints 2"] | None,
+    weight: Float[Array, "n joints 2"] | None,
     n_map: int,
     members: Int[Array, "g m"],
 ):
@@ -62,7 +62,7 @@ def normal_terms(
     - `offset`: the dense columns ``(start, stop)`` of the joint offsets, which are the
       joints' turn columns ``∂r/∂qⱼ``.
     - `index`, `weight`: the maps' active knots (`map_index`); `n_map`: the size of the
-      map block (0: no maps).
+      map block (0: no maps, `index` and `weight` unused).
     - `members` `(G, M)`: the poses of each group, padded with N (`group_members`); a
       group's dense block is then one product over its own poses, not a masked product
       over all of them per group.
