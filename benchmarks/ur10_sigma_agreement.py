@@ -107,7 +107,7 @@ def twin(series: dict, truth: rd.PoseFit, noise: np.ndarray, seed: int = 0) -> d
         pose = jax.vmap(lambda p, d: (jaxlie.SE3(p) @ jaxlie.SE3.exp(d)).wxyz_xyz)(
             jnp.asarray(gen.predict(s)), jnp.asarray(noise_k)
         )
-        out[k] = rd.PoseSeries(k, s.joints, np.asarray(pose), None, None, s.torque)
+        out[k] = rd.PoseSeries(k, s.joints, np.asarray(pose), None, None)
     return out
 
 

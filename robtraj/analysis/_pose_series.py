@@ -13,18 +13,12 @@ import numpy as np
 
 from .._errors import UserError
 from ..estimate.calibration import robot_world_hand_eye
-from ..model import Effects, flange_poses, gravity_torque, robot_from_log, ur10
+from ..model import Effects, flange_poses, robot_from_log, ur10
 
 SERIES_FILES = {
     "A": "Series_A/measurements_grid.csv",
     "B": "Series_B/measurements_joint_configurations.csv",
 }
-
-
-def gravity_torques(joints: np.ndarray) -> np.ndarray:
-    """`(N, J)` gravity torques [N·m] of the nominal UR10 link-mass model."""
-    robot = ur10()
-    return np.asarray(jax.jit(jax.vmap(lambda q: gravity_torque(robot, q)))(jnp.asarray(joints)))
 
 
 def closed_form_start(series: PoseSeries) -> tuple[np.ndarray, np.ndarray]:
@@ -55,12 +49,6 @@ class PoseSeries:
     measured: np.ndarray
     temperature: np.ndarray | None = None
     std: np.ndarray | None = None
-    #: `(N, 6)` gravity torques [N·m] of the nominal link-mass model (computed if None)
-    torque: np.ndarray | None = None
-
-    def __post_init__(self):
-        if self.torque is None:
-            object.__setattr__(self, "torque", gravity_torques(self.joints))
 
     @property
     def start(self) -> tuple[np.ndarray, np.ndarray]:
@@ -83,7 +71,6 @@ class PoseSeries:
             self.measured[idx],
             take(self.temperature),
             take(self.std),
-            take(self.torque),
         )
 
     def every(self, k: int) -> PoseSeries:

@@ -3,7 +3,9 @@ the one least-squares engine (`solve`, `identifiability`, `covariance`,
 `robust_covariance`; Gaussian priors on terms, `GaussianPrior`; the σ a fit quotes,
 `quoted_sigma`).
 
-Bundle calibration lives in `robtraj.estimate.calibration`.
+Bundle calibration lives in `robtraj.estimate.calibration`; its problem's 6-DOF pose
+observations of static poses (a laser tracker's probe on a robot, the UR10 series) are
+`pose_normal` over `PoseData`, in the same parameters (`pose_parameter_names`).
 """
 
 from ._base_frame import base_frame_poses
