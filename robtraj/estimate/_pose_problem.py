@@ -72,31 +72,22 @@ def pose_space(maps: bool = False) -> tuple[str, ...]:
     return (*POSE_EFFECTS, *HARMONIC_TERMS, *(MAP_TERMS if maps else ()))
 
 
-def _effect_sizes(n_joints: int = 6) -> dict[str, int]:
-    return {
-        "joint_offset": n_joints,
-        "link_length": 2 * n_joints,
-        "link_twist": 2 * n_joints,
-        "joint_compliance": n_joints,
-        "thermal_drift": 3,
-        "tracker_scale": 1,
-        "joint_harmonic": 2 * len(HARMONICS) * n_joints,
-        "joint_map": MAP_KNOTS * n_joints,
-    }
-
-
 def pose_parameter_names(maps: bool = False) -> list[str]:
     """Names of θ's entries (`theta_names` of `pose_space`); with `maps`, the joint angle
     error maps' knots at the end (``joint2_map.k017``)."""
     return theta_names(Effects.zeros(6), pose_space(maps), 0)[0]
 
 
-def pose_slices(n_joints: int = 6) -> dict[str, slice]:
+def pose_slices() -> dict[str, slice]:
     """θ's entries of each library effect, of all harmonics (``joint_harmonic``) and of all
     maps (``joint_map``)."""
+    groups = {t: "joint_harmonic" for t in HARMONIC_TERMS} | {t: "joint_map" for t in MAP_TERMS}
     out, k = {}, 12
-    for name, size in _effect_sizes(n_joints).items():
-        out[name] = slice(k, k + size)
+    for name in pose_space(maps=True):
+        size = int(np.size(Effects.zeros(6).get(name)))
+        group = groups.get(name, name)
+        start = out[group].start if group in out else k
+        out[group] = slice(start, k + size)
         k += size
     return out
 
