@@ -8,10 +8,11 @@ shows, every joint's harmonics of the dictionary and, where a fit carries them, 
 joint angle error maps. So θ names and reads as g does (`theta_names`,
 `apply_effects` on the nominal `Effects`), and a pose fit's values are a calibration's.
 The residual of a pose is `(6,)`: the position error [m] in the tracker frame and the
-rotation vector [rad] of measured⁻¹·predicted. Its normal equations (`pose_normal`,
-per group of poses `pose_group_terms`) take the dense columns of a few thousand poses
-by the chain rule through `robtraj.model.flange_jacobian` and the maps' block from
-their active knots (`_pose_normal`).
+rotation vector [rad] of measured⁻¹·predicted. The poses are a `BundleProblem`
+without a constellation whose frames are its log's entries (`at_log`): prediction and
+dense Jacobian are the bundle's (`probe_residual`, `probe_jacobian`: the closed-form
+tool Jacobian), and the normal equations (`pose_normal`, per group of poses
+`pose_group_terms`) take the maps' block from their active knots (`_pose_normal`).
 """
 
 from __future__ import annotations
